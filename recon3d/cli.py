@@ -1,0 +1,137 @@
+"""The ``recon3d`` command line. Each subcommand is a thin wrapper over one library call."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from recon3d import __version__
+from recon3d.errors import Recon3dError
+
+log = logging.getLogger("recon3d")
+
+
+def _configure_logging(verbose: int, quiet: int) -> None:
+    level = max(logging.DEBUG, logging.WARNING - 10 * (verbose - quiet))
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("recon3d")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+class _Group(click.Group):
+    """Turns every recon3d error into one line on stderr and exit status 1."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except Recon3dError as exc:
+            click.echo(f"recon3d: error: {exc}", err=True)
+            sys.exit(1)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="recon3d")
+@click.option("-v", "--verbose", count=True, help="More messages (-vv for debug).")
+@click.option("-q", "--quiet", count=True, help="Fewer messages: errors only, no progress bar.")
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
+    """recon3d: 3D city models, DSM and DTM from point clouds, with accuracy reports."""
+    _configure_logging(verbose, quiet)
+    ctx.obj = {"quiet": quiet > 0}
+
+
+@cli.command()
+@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option("--crs", help="CRS of an input without one, e.g. EPSG:7415.")
+@click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
+@click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV of reference points: x,y,z[,id][,kind].")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
+@click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+@click.pass_context
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, config_path, overwrite, overrides):
+    """Reconstruct INPUT (a LAS/LAZ or PLY point cloud) into the products of OUT.
+
+    OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
+    buildings.city.json, buildings.obj, buildings.glb, footprints.geojson,
+    report.json and run.json. Parameters left unset are chosen from the data and
+    recorded, with the reason, in run.json.
+
+    \b
+    Examples
+    --------
+      recon3d run delft.laz --crs EPSG:7415 -o out
+      recon3d run village.laz --footprints bati.shp --checkpoints gcp.csv -o out
+      recon3d run city.laz -o out --set dsm.resolution=0.5 --overwrite
+    """
+    from recon3d.config import PipelineConfig
+    from recon3d.core.geo import parse_crs
+    from recon3d.pipeline.run import run as run_pipeline
+
+    config = PipelineConfig.from_toml(config_path) if config_path else PipelineConfig()
+    config = config.with_overrides(list(overrides))
+    user_crs = parse_crs(crs) if crs else None
+    with _StageProgress(enabled=not ctx.obj["quiet"]) as progress:
+        state = run_pipeline(
+            input_path,
+            out_dir,
+            crs=user_crs,
+            footprints=footprints,
+            checkpoints=checkpoints,
+            config=config,
+            overwrite=overwrite,
+            progress=progress,
+        )
+    if not ctx.obj["quiet"]:
+        _print_summary(state)
+
+
+class _StageProgress:
+    """A progress bar over pipeline stages on a terminal; silent otherwise."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled and sys.stderr.isatty()
+        self.bar = None
+
+    def __enter__(self):
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=1, unit="stage", file=sys.stderr, leave=False)
+        return self
+
+    def __call__(self, name: str, index: int, total: int) -> None:
+        if self.bar is not None:
+            self.bar.total = total
+            self.bar.n = index
+            self.bar.set_description(name)
+            self.bar.refresh()
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _print_summary(state) -> None:
+    click.echo(f"wrote {state.out_dir}  ({len(state.city)} buildings, {sum(state.timings.values()):.1f} s)")
+    rows = state.report.get("accuracy", [])
+    if rows:
+        click.echo(f"{'product':<11}{'reference':<32}{'n':>8}{'mean':>8}{'std':>7}{'RMS':>7}{'max':>7}{'NMAD':>7}{'<=1m%':>7}{'<=2m%':>7}")
+        for r in rows:
+            if not r["n"]:
+                continue
+            click.echo(
+                f"{r['product']:<11}{r['reference'][:31]:<32}{r['n']:>8}{r['mean']:>8.3f}{r['std']:>7.3f}"
+                f"{r['rms']:>7.3f}{r['max_abs']:>7.2f}{r['nmad']:>7.3f}{r['within_1m']:>7.1f}{r['within_2m']:>7.1f}"
+            )
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli(prog_name="recon3d")

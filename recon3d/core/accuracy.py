@@ -1,0 +1,63 @@
+"""The :class:`AccuracyReport`: the accuracy table of one product against one reference."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+__all__ = ["AccuracyReport"]
+
+
+@dataclass(frozen=True)
+class AccuracyReport:
+    """Height errors of a product against a reference (product minus reference).
+
+    The columns are those of the classic DSM/DTM accuracy studies, plus NMAD
+    (1.4826 x median absolute deviation from the median), which is robust to blunders.
+    Values are in metres; ``within_1m`` and ``within_2m`` are percentages.
+    """
+
+    product: str
+    reference: str
+    n: int
+    mean: float
+    std: float
+    rms: float
+    max_abs: float
+    nmad: float
+    within_1m: float
+    within_2m: float
+
+    @classmethod
+    def from_errors(
+        cls, errors: np.ndarray, *, product: str, reference: str, metres_per_unit: float = 1.0
+    ) -> AccuracyReport:
+        """Build the table from (n,) height errors in CRS units; NaNs are left out.
+
+        ``metres_per_unit`` converts errors to metres, so reports of data in feet are
+        still in metres (the tolerances +-1 m and +-2 m are metric).
+        """
+        e = np.asarray(errors, dtype=np.float64) * metres_per_unit
+        e = e[np.isfinite(e)]
+        if e.size == 0:
+            nan = float("nan")
+            return cls(product, reference, 0, nan, nan, nan, nan, nan, nan, nan)
+        a = np.abs(e)
+        return cls(
+            product=product,
+            reference=reference,
+            n=int(e.size),
+            mean=float(e.mean()),
+            std=float(e.std(ddof=1)) if e.size > 1 else 0.0,
+            rms=float(np.sqrt(np.mean(e**2))),
+            max_abs=float(a.max()),
+            nmad=float(1.4826 * np.median(np.abs(e - np.median(e)))),
+            within_1m=float(100.0 * np.mean(a <= 1.0)),
+            within_2m=float(100.0 * np.mean(a <= 2.0)),
+        )
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict (NaN becomes None)."""
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                for k, v in asdict(self).items()}

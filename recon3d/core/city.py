@@ -1,0 +1,154 @@
+"""Buildings, their solids and the city model."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import mapbox_earcut
+import numpy as np
+import pyproj
+import shapely
+import trimesh
+
+from recon3d.core.geo import LocalFrame
+
+__all__ = ["SEMANTIC_TYPES", "Building", "CityModel", "Solid"]
+
+#: CityJSON semantic surface types used for building solids.
+SEMANTIC_TYPES = ("GroundSurface", "WallSurface", "RoofSurface")
+
+
+@dataclass
+class Solid:
+    """A closed polyhedral solid made of planar polygonal surfaces (CityJSON-style).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64
+        Coordinates in the city model's :class:`LocalFrame`.
+    surfaces : list of list of (k,) int arrays
+        Each surface is an outer ring followed by its inner rings (holes); rings are
+        vertex indices, not closed (first vertex not repeated). Outer rings are
+        counter-clockwise seen from outside the solid; inner rings clockwise.
+    semantics : list of str
+        One of :data:`SEMANTIC_TYPES` per surface.
+    """
+
+    vertices: np.ndarray
+    surfaces: list[list[np.ndarray]]
+    semantics: list[str]
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.surfaces = [[np.asarray(r, dtype=np.int64) for r in s] for s in self.surfaces]
+        if len(self.surfaces) != len(self.semantics):
+            raise ValueError("one semantic type per surface is required")
+
+    def to_trimesh(self) -> trimesh.Trimesh:
+        """Triangulate every surface (earcut in the surface's own plane).
+
+        Returns a mesh with ``metadata["semantics"]``, one surface type per triangle,
+        and ``metadata["surface_index"]`` giving each triangle's surface.
+        """
+        faces, sem, index = [], [], []
+        for i, (rings, kind) in enumerate(zip(self.surfaces, self.semantics, strict=True)):
+            tris = triangulate_surface(self.vertices, rings)
+            faces.append(tris)
+            sem += [kind] * len(tris)
+            index += [i] * len(tris)
+        f = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
+        mesh = trimesh.Trimesh(self.vertices.copy(), f, process=False)
+        mesh.metadata["semantics"] = sem
+        mesh.metadata["surface_index"] = np.asarray(index, dtype=np.int64)
+        return mesh
+
+
+def newell_normal(points: np.ndarray) -> np.ndarray:
+    """Unnormalised normal of a (k, 3) polygon ring by Newell's method (robust to collinear runs)."""
+    p = np.asarray(points, dtype=np.float64)
+    q = np.roll(p, -1, axis=0)
+    return np.array(
+        [
+            np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
+            np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
+            np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
+        ]
+    )
+
+
+def triangulate_surface(vertices: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
+    """Triangles (m, 3) of vertex indices covering one planar surface with holes.
+
+    The triangles keep the orientation of the outer ring. earcut is named
+    explicitly so every machine produces the same triangles.
+    """
+    outer = vertices[rings[0]]
+    normal = newell_normal(outer)
+    if not np.any(normal):
+        return np.zeros((0, 3), np.int64)
+    drop = int(np.argmax(np.abs(normal)))
+    keep = [a for a in range(3) if a != drop]
+    index = np.concatenate(rings)
+    xy = vertices[index][:, keep]
+    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
+    tri = mapbox_earcut.triangulate_float64(xy, ends).reshape(-1, 3)
+    tri = index[tri]
+    if len(tri):
+        a, b, c = (vertices[tri[:, k]] for k in range(3))
+        flip = np.einsum("ij,j->i", np.cross(b - a, c - a), normal) < 0
+        tri[flip] = tri[flip][:, ::-1]
+    return tri
+
+
+@dataclass
+class Building:
+    """One building of the city model.
+
+    Parameters
+    ----------
+    id : str
+        Stable identifier (from the given footprint, or ``b<n>`` for detected ones).
+    footprint : shapely.Polygon
+        Outline in world CRS coordinates (holes for courtyards).
+    ground_z, roof_z : float
+        Terrain height under the footprint and representative roof height (LoD1),
+        in CRS height units.
+    solids : dict of str to Solid
+        Solids by LoD ("1", "2.2"), in the city model's :class:`LocalFrame`.
+    status : str
+        "ok" when every requested LoD was built, "failed" when none was; ``reason``
+        says why (a short code such as "no_points" or "too_low").
+    attributes : dict
+        Extra values written to CityJSON and footprints.geojson.
+    """
+
+    id: str
+    footprint: shapely.Polygon
+    ground_z: float = float("nan")
+    roof_z: float = float("nan")
+    solids: dict[str, Solid] = field(default_factory=dict)
+    status: str = "ok"
+    reason: str | None = None
+    attributes: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def height(self) -> float:
+        """Roof height above the terrain, in CRS height units."""
+        return self.roof_z - self.ground_z
+
+
+@dataclass
+class CityModel:
+    """The buildings of one run, their CRS and the local frame of their solids."""
+
+    buildings: list[Building]
+    crs: pyproj.CRS | None
+    frame: LocalFrame = field(default_factory=LocalFrame)
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.buildings)
+
+    def __iter__(self):
+        return iter(self.buildings)

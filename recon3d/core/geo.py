@@ -1,0 +1,147 @@
+"""Coordinate reference systems, units and the local frame meshes live in.
+
+recon3d keeps every product in the CRS of its input. Parameters that are physical
+lengths (a 2.5 m minimal building height, a 25 m2 minimal area) are converted into
+the CRS units with :class:`Units`, so a cloud in US survey feet (Autzen) gives the
+same buildings as the same cloud in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyproj
+from pyproj.exceptions import CRSError as _ProjCRSError
+
+from recon3d.errors import CRSError
+
+__all__ = ["LocalFrame", "Units", "crs_name", "crs_units", "parse_crs", "to_rasterio_crs"]
+
+
+def parse_crs(text: str | int | pyproj.CRS, *, source: str = "--crs") -> pyproj.CRS:
+    """Parse a user CRS ("EPSG:7415", 2154, WKT, PROJ string) into a :class:`pyproj.CRS`.
+
+    Raises
+    ------
+    CRSError
+        When PROJ does not know the CRS; the message names ``source``.
+    """
+    if isinstance(text, pyproj.CRS):
+        return text
+    try:
+        return pyproj.CRS.from_user_input(text)
+    except _ProjCRSError as exc:
+        raise CRSError(f"{source}: unknown coordinate reference system {text!r}") from exc
+
+
+def crs_name(crs: pyproj.CRS | None) -> str:
+    """Short human name of a CRS, "EPSG:7415" where an authority code exists."""
+    if crs is None:
+        return "none"
+    auth = crs.to_authority(min_confidence=70)
+    return f"{auth[0]}:{auth[1]}" if auth else crs.name
+
+
+def to_rasterio_crs(crs: pyproj.CRS | None):
+    """The same CRS as a :class:`rasterio.crs.CRS` (for GeoTIFF writing)."""
+    if crs is None:
+        return None
+    from rasterio.crs import CRS as RioCRS
+
+    auth = crs.to_authority(min_confidence=100)
+    if auth and auth[0] == "EPSG":
+        return RioCRS.from_epsg(int(auth[1]))
+    return RioCRS.from_wkt(crs.to_wkt())
+
+
+@dataclass(frozen=True)
+class Units:
+    """Linear units of a CRS, as metres per CRS unit.
+
+    Attributes
+    ----------
+    horizontal : float
+        Metres per horizontal unit (1.0 for metres, 0.3048006 for US survey feet).
+    vertical : float
+        Metres per height unit. Taken from the vertical part of a compound CRS; a
+        projected CRS without a vertical part is assumed to use its horizontal unit
+        for heights too (how LAS files in feet are written).
+    name : str
+        Name of the horizontal unit, for messages and run.json.
+    vertical_source : str
+        Where the vertical unit came from ("compound CRS" or "assumed horizontal").
+    """
+
+    horizontal: float = 1.0
+    vertical: float = 1.0
+    name: str = "metre"
+    vertical_source: str = "assumed horizontal"
+
+    def length(self, metres: float) -> float:
+        """A horizontal length in metres expressed in CRS units."""
+        return metres / self.horizontal
+
+    def area(self, square_metres: float) -> float:
+        """An area in m2 expressed in squared CRS units."""
+        return square_metres / self.horizontal**2
+
+    def height(self, metres: float) -> float:
+        """A height difference in metres expressed in CRS height units."""
+        return metres / self.vertical
+
+
+def crs_units(crs: pyproj.CRS, *, source: str = "input") -> Units:
+    """Units of a projected (optionally compound) CRS.
+
+    Raises
+    ------
+    CRSError
+        For a geographic CRS (degrees cannot be gridded in metres).
+    """
+    horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
+    if not horizontal.is_projected:
+        raise CRSError(
+            f"{source}: CRS {crs_name(crs)} is not projected (units are degrees); "
+            "reproject the data to a projected CRS such as UTM"
+        )
+    axis = horizontal.axis_info[0]
+    h = float(axis.unit_conversion_factor)
+    if crs.is_compound and len(crs.sub_crs_list) > 1 and crs.sub_crs_list[1].axis_info:
+        v = float(crs.sub_crs_list[1].axis_info[0].unit_conversion_factor)
+        vsource = "compound CRS"
+    else:
+        v, vsource = h, "assumed horizontal"
+    return Units(horizontal=h, vertical=v, name=axis.unit_name, vertical_source=vsource)
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """A translated copy of the world CRS, so float32 meshes keep millimetres.
+
+    manifold3d and glTF store float32 (7 significant digits); national-grid
+    coordinates such as (85000, 447500) or UTM northings lose centimetres there.
+    Meshes are built in local coordinates ``world - origin`` and the origin is added
+    back at export (CityJSON ``transform``, glTF root translation).
+
+    Parameters
+    ----------
+    origin : (3,) float
+        World coordinates of the local origin.
+    """
+
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def around(cls, xyz_min, step: float = 100.0) -> LocalFrame:
+        """A frame whose origin is ``xyz_min`` snapped down to a multiple of ``step``."""
+        o = np.floor(np.asarray(xyz_min, dtype=np.float64) / step) * step
+        return cls(origin=(float(o[0]), float(o[1]), float(o[2])))
+
+    def to_local(self, xyz: np.ndarray) -> np.ndarray:
+        """(n, 3) world coordinates to (n, 3) local coordinates."""
+        return np.asarray(xyz, dtype=np.float64) - np.asarray(self.origin)
+
+    def to_world(self, xyz: np.ndarray) -> np.ndarray:
+        """(n, 3) local coordinates to (n, 3) world coordinates."""
+        return np.asarray(xyz, dtype=np.float64) + np.asarray(self.origin)

@@ -1,0 +1,131 @@
+"""The :class:`Raster` type: a north-up float32 grid with its georeferencing."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyproj
+from affine import Affine
+
+__all__ = ["Raster", "grid_for_bounds"]
+
+
+def grid_for_bounds(
+    xmin: float, ymin: float, xmax: float, ymax: float, resolution: float
+) -> tuple[Affine, tuple[int, int]]:
+    """A north-up grid covering a box, its origin snapped to multiples of the resolution.
+
+    Snapping makes every product of one run (and of two runs at the same resolution)
+    share cell edges exactly, so ``a.transform == b.transform`` is a valid check.
+
+    Returns
+    -------
+    transform : affine.Affine
+        Pixel-corner transform (rasterio convention; cell centres at +0.5).
+    shape : (rows, cols)
+    """
+    west = math.floor(xmin / resolution) * resolution
+    north = math.ceil(ymax / resolution) * resolution
+    if north <= ymax:  # a point exactly on the top edge must fall inside row 0
+        north += resolution
+    cols = max(1, math.floor((xmax - west) / resolution) + 1)
+    rows = max(1, math.floor((north - ymin) / resolution) + 1)
+    return Affine(resolution, 0.0, west, 0.0, -resolution, north), (rows, cols)
+
+
+@dataclass
+class Raster:
+    """A georeferenced single-band grid.
+
+    Parameters
+    ----------
+    data : (rows, cols) float32
+        Cell values; missing cells are NaN (never 0 or -9999 in memory).
+    transform : affine.Affine
+        Maps pixel corner (col, row) to world (x, y), GDAL "pixel is area";
+        cell centres are at (col + 0.5, row + 0.5).
+    crs : pyproj.CRS or None
+    tags : dict
+        Free metadata written as GeoTIFF tags (product name, height reference...).
+    """
+
+    data: np.ndarray
+    transform: Affine
+    crs: pyproj.CRS | None = None
+    tags: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.data = np.asarray(self.data, dtype=np.float32)
+        if self.data.ndim != 2:
+            raise ValueError(f"Raster data must be 2-D, got shape {self.data.shape}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape  # type: ignore[return-value]
+
+    @property
+    def resolution(self) -> float:
+        """Cell size in CRS units (square cells)."""
+        return float(self.transform.a)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(west, south, east, north) of the grid's outer edges."""
+        rows, cols = self.shape
+        west, north = self.transform.c, self.transform.f
+        return (west, north + rows * self.transform.e, west + cols * self.transform.a, north)
+
+    def like(self, data: np.ndarray, **tags: str) -> Raster:
+        """A raster on the same grid and CRS holding ``data``."""
+        return Raster(data, self.transform, self.crs, dict(tags))
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """World x of each column (cols,) and y of each row (rows,) at cell centres."""
+        rows, cols = self.shape
+        x = self.transform.c + (np.arange(cols) + 0.5) * self.transform.a
+        y = self.transform.f + (np.arange(rows) + 0.5) * self.transform.e
+        return x, y
+
+    def rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Integer (row, col) of the cells containing world points; may be out of range."""
+        col = np.floor((np.asarray(x) - self.transform.c) / self.transform.a).astype(np.int64)
+        row = np.floor((np.asarray(y) - self.transform.f) / self.transform.e).astype(np.int64)
+        return row, col
+
+    def sample(self, x: np.ndarray, y: np.ndarray, *, bilinear: bool = True) -> np.ndarray:
+        """Values at world points, (n,) float64; NaN outside the grid or on nodata.
+
+        Bilinear interpolation between cell centres by default; a NaN neighbour
+        makes the result NaN rather than biasing it.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        rows, cols = self.shape
+        fc = (x - self.transform.c) / self.transform.a - 0.5
+        fr = (y - self.transform.f) / self.transform.e - 0.5
+        if not bilinear:
+            r, c = np.floor(fr + 0.5).astype(np.int64), np.floor(fc + 0.5).astype(np.int64)
+            out = np.full(x.shape, np.nan)
+            ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+            out[ok] = self.data[r[ok], c[ok]]
+            return out
+        fr = np.clip(fr, 0, rows - 1)
+        fc = np.clip(fc, 0, cols - 1)
+        r0 = np.minimum(np.floor(fr).astype(np.int64), max(rows - 2, 0))
+        c0 = np.minimum(np.floor(fc).astype(np.int64), max(cols - 2, 0))
+        r1, c1 = np.minimum(r0 + 1, rows - 1), np.minimum(c0 + 1, cols - 1)
+        dr, dc = fr - r0, fc - c0
+        d = self.data.astype(np.float64)
+        out = (
+            d[r0, c0] * (1 - dr) * (1 - dc)
+            + d[r0, c1] * (1 - dr) * dc
+            + d[r1, c0] * dr * (1 - dc)
+            + d[r1, c1] * dr * dc
+        )
+        inside = (
+            (x >= self.bounds[0]) & (x <= self.bounds[2]) & (y >= self.bounds[1]) & (y <= self.bounds[3])
+        )
+        out[~inside] = np.nan
+        return out

@@ -1,0 +1,134 @@
+"""LAS/LAZ point clouds through laspy (LAZ by lazrs)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyproj
+
+from recon3d.core.geo import crs_name
+from recon3d.core.pointcloud import PointCloud
+from recon3d.errors import CRSError, InputError
+from recon3d.io import atomic_path, require_file
+
+log = logging.getLogger(__name__)
+
+__all__ = ["read_las", "write_las"]
+
+#: Standard LAS dimensions carried through recon3d (extra-bytes dimensions are dropped).
+KEPT_DIMENSIONS = (
+    "intensity",
+    "return_number",
+    "number_of_returns",
+    "classification",
+    "scan_angle_rank",
+    "scan_angle",
+    "user_data",
+    "point_source_id",
+    "gps_time",
+    "red",
+    "green",
+    "blue",
+    "nir",
+)
+
+
+def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
+    """Read a LAS or LAZ file.
+
+    Parameters
+    ----------
+    path : path-like
+    crs : pyproj.CRS, optional
+        CRS to use when the file has none. When the file has one and ``crs``
+        differs, a :class:`CRSError` is raised rather than guessing which is right.
+
+    Returns
+    -------
+    PointCloud
+        xyz (n, 3) float64 in file units and the kept standard dimensions.
+
+    Raises
+    ------
+    InputError
+        Missing, truncated or corrupt file, or a cloud without points.
+    CRSError
+        No CRS in the file and none given, or a conflicting one given.
+    """
+    path = require_file(path, "point cloud")
+    try:
+        las = laspy.read(path)
+        xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+    except Exception as exc:  # laspy, lazrs and numpy all raise on a damaged file
+        raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
+    if len(xyz) == 0:
+        raise InputError(f"{path}: the point cloud is empty (0 points)")
+    if not np.isfinite(xyz).all():
+        raise InputError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates")
+    names = set(las.point_format.dimension_names)
+    attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
+    file_crs = _header_crs(las, path)
+    return PointCloud(xyz, attributes, _resolve_crs(file_crs, crs, path))
+
+
+def write_las(cloud: PointCloud, path: str | Path) -> None:
+    """Write a cloud as LAS 1.4 (LAZ when the suffix is .laz), CRS as WKT in the header.
+
+    Point format 6 without colour, 7 with RGB, 8 with RGB and NIR.
+    """
+    a = cloud.attributes
+    fmt = 8 if "nir" in a and "red" in a else 7 if "red" in a else 6
+    header = laspy.LasHeader(point_format=fmt, version="1.4")
+    mins = cloud.xyz.min(axis=0)
+    header.offsets = np.floor(mins)
+    header.scales = np.array([0.001, 0.001, 0.001])
+    if cloud.crs is not None:
+        header.add_crs(cloud.crs)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
+    names = set(las.point_format.dimension_names)
+    for name, values in a.items():
+        if name in names and name not in ("scan_angle_rank",):
+            las[name] = values
+    if "scan_angle_rank" in a and "scan_angle" not in a:
+        las["scan_angle"] = np.round(a["scan_angle_rank"].astype(np.float64) / 0.006).astype(np.int16)
+    with atomic_path(path) as tmp:
+        las.write(tmp)
+
+
+def _header_crs(las: laspy.LasData, path: Path) -> pyproj.CRS | None:
+    try:
+        return las.header.parse_crs()
+    except Exception as exc:  # unreadable GeoTIFF keys or WKT: treat as absent, say so
+        log.warning("%s: CRS in the header cannot be parsed (%s); treating it as missing", path, _short(exc))
+        return None
+
+
+def _resolve_crs(file_crs: pyproj.CRS | None, user_crs: pyproj.CRS | None, path: Path) -> pyproj.CRS:
+    if file_crs is None and user_crs is None:
+        raise CRSError(f"{path}: the file has no CRS; give one with --crs (for example --crs EPSG:7415)")
+    if file_crs is None:
+        return user_crs
+    if user_crs is not None and not _same_crs(file_crs, user_crs):
+        raise CRSError(
+            f"{path}: the file's CRS is {crs_name(file_crs)} but --crs says {crs_name(user_crs)}; "
+            "leave out --crs or reproject the file"
+        )
+    return user_crs if user_crs is not None else file_crs
+
+
+def _same_crs(a: pyproj.CRS, b: pyproj.CRS) -> bool:
+    """Same CRS, or the same horizontal CRS when only one of them has a vertical part."""
+    if a.equals(b, ignore_axis_order=True):
+        return True
+    ha = a.sub_crs_list[0] if a.is_compound else a
+    hb = b.sub_crs_list[0] if b.is_compound else b
+    return ha.equals(hb, ignore_axis_order=True) and (a.is_compound != b.is_compound)
+
+
+def _short(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:200] if text else type(exc).__name__

@@ -1,0 +1,161 @@
+"""Vector files (GeoJSON, GeoPackage, Shapefile) to and from shapely, through pyogrio (GDAL)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyogrio
+import pyproj
+import shapely
+
+from recon3d.core.geo import crs_name
+from recon3d.errors import CRSError, InputError
+from recon3d.io import atomic_path, require_file
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Footprint", "read_footprints", "write_features"]
+
+
+@dataclass
+class Footprint:
+    """A 2-D building outline read from a vector file."""
+
+    id: str
+    polygon: shapely.Polygon
+    attributes: dict[str, Any] = field(default_factory=dict)
+
+
+def read_footprints(
+    path: str | Path, *, crs: pyproj.CRS, id_field: str | None = None
+) -> tuple[list[Footprint], list[str]]:
+    """Read building outlines and bring them into ``crs``.
+
+    Multipolygons become one footprint per part (``id-1``, ``id-2``...); invalid
+    rings are repaired with ``shapely.make_valid``; Z values are dropped; features
+    without area are skipped.
+
+    Returns
+    -------
+    footprints : list of Footprint
+    notes : list of str
+        One line per repaired or skipped feature, for run.json.
+
+    Raises
+    ------
+    InputError
+        Unreadable file or no polygon in it.
+    CRSError
+        The file has no CRS.
+    """
+    path = require_file(path, "footprints")
+    try:
+        meta, _, wkb, fields = pyogrio.raw.read(path)
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read vector file ({exc})") from None
+    if meta.get("crs") is None:
+        raise CRSError(f"{path}: the footprints have no CRS (add a .prj or a crs member)")
+    src_crs = pyproj.CRS.from_user_input(meta["crs"])
+    geoms = shapely.from_wkb(wkb)
+    geoms = shapely.force_2d(geoms)
+    if src_crs.is_geographic:
+        lo = shapely.bounds(geoms)
+        if np.nanmax(np.abs(lo[:, [0, 2]])) > 180 or np.nanmax(np.abs(lo[:, [1, 3]])) > 90:
+            raise CRSError(
+                f"{path}: the file's CRS is {crs_name(src_crs)} (longitude/latitude; GeoJSON without "
+                "a crs member means WGS84) but its coordinates are projected; write the CRS into the file"
+            )
+    if not _same_horizontal(src_crs, crs):
+        log.info("reprojecting %s from %s to %s", path.name, crs_name(src_crs), crs_name(crs))
+        t = pyproj.Transformer.from_crs(_horizontal(src_crs), _horizontal(crs), always_xy=True)
+        geoms = shapely.transform(geoms, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
+    names = list(meta["fields"])
+    id_field = id_field or next((n for n in names if n.lower() in ("id", "identifiant", "fid", "gml_id", "identificatie")), None)
+    footprints, notes = [], []
+    for i, geom in enumerate(geoms):
+        attrs = {n: _plain(fields[j][i]) for j, n in enumerate(names)}
+        fid = str(attrs.get(id_field, i)) if id_field else str(i)
+        parts, note = _polygon_parts(geom)
+        if note:
+            notes.append(f"{path.name} feature {fid}: {note}")
+        suffix = len(parts) > 1
+        footprints += [
+            Footprint(f"{fid}-{k + 1}" if suffix else fid, p, attrs) for k, p in enumerate(parts)
+        ]
+    if not footprints:
+        raise InputError(f"{path}: no polygon with an area in the file")
+    return footprints, notes
+
+
+def write_features(
+    path: str | Path,
+    geometries: list[shapely.Geometry],
+    properties: list[dict[str, Any]],
+    crs: pyproj.CRS | None,
+) -> None:
+    """Write polygons and their properties as GeoJSON (or any GDAL vector format by suffix)."""
+    keys = list(dict.fromkeys(k for p in properties for k in p))
+    columns = [np.array([_plain(p.get(k)) for p in properties], dtype=object) for k in keys]
+    columns = [_typed(c) for c in columns]
+    wkb = np.array(shapely.to_wkb(np.array(geometries, dtype=object)), dtype=object)
+    with atomic_path(path) as tmp:
+        tmp.unlink()
+        pyogrio.raw.write(
+            tmp,
+            wkb,
+            columns,
+            fields=keys,
+            geometry_type="Polygon" if all(g.geom_type == "Polygon" for g in geometries) else "Unknown",
+            crs=crs.to_wkt() if crs is not None else None,
+            driver="GeoJSON",
+            layer_options={"RFC7946": "NO", "WRITE_BBOX": "YES"},
+        )
+
+
+def _polygon_parts(geom) -> tuple[list[shapely.Polygon], str | None]:
+    if geom is None or geom.is_empty:
+        return [], "empty geometry skipped"
+    note = None
+    if not geom.is_valid:
+        note = f"invalid polygon repaired ({shapely.is_valid_reason(geom)})"
+        geom = shapely.make_valid(geom)
+    parts = [g for g in getattr(geom, "geoms", [geom]) if g.geom_type == "Polygon" and g.area > 0]
+    if not parts and geom.geom_type == "GeometryCollection":
+        parts = [p for g in geom.geoms for p in getattr(g, "geoms", [g]) if p.geom_type == "Polygon" and p.area > 0]
+    if not parts:
+        return [], f"{geom.geom_type} without area skipped"
+    return [shapely.orient_polygons(p) for p in parts], note
+
+
+def _horizontal(crs: pyproj.CRS) -> pyproj.CRS:
+    return crs.sub_crs_list[0] if crs.is_compound else crs
+
+
+def _same_horizontal(a: pyproj.CRS, b: pyproj.CRS) -> bool:
+    return _horizontal(a).equals(_horizontal(b), ignore_axis_order=True)
+
+
+def _plain(v: Any) -> Any:
+    """numpy scalars to Python values; NaN to None."""
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
+
+
+def _typed(column: np.ndarray) -> np.ndarray:
+    """Give pyogrio a typed column where every value shares a numeric type."""
+    values = [v for v in column if v is not None]
+    if values and all(isinstance(v, bool) for v in values):
+        return column.astype(str)
+    if values and all(isinstance(v, int) and not isinstance(v, bool) for v in values) and len(values) == len(column):
+        return column.astype(np.int64)
+    if values and all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return np.array([np.nan if v is None else float(v) for v in column])
+    return np.array([None if v is None else str(v) for v in column], dtype=object)
+

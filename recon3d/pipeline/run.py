@@ -1,0 +1,411 @@
+"""``recon3d run``: the stage table, the output folder and run.json.
+
+This is the only module that knows file names, the order of stages and the output
+folder. Every stage is a small function reading and extending one :class:`RunState`.
+The whole output folder is written under a temporary name beside the target and
+renamed at the end, so a failed run leaves nothing behind and an existing folder is
+replaced only with ``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyproj
+
+from recon3d import __version__
+from recon3d.buildings import detect, lod
+from recon3d.buildings.measure import measure_heights
+from recon3d.config import PipelineConfig
+from recon3d.core.city import Building, CityModel
+from recon3d.core.geo import LocalFrame, Units, crs_name, crs_units
+from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.raster import Raster
+from recon3d.errors import InputError
+from recon3d.io import checkpoints as checkpoints_io
+from recon3d.io import vectors
+from recon3d.io.geotiff import write_raster
+from recon3d.io.las import read_las, write_las
+from recon3d.quality import evaluate
+from recon3d.quality.rasterize import model_dsm
+from recon3d.terrain import dsm as dsm_stage
+from recon3d.terrain import dtm as dtm_stage
+from recon3d.terrain import ground as ground_stage
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RunState", "run"]
+
+ProgressCallback = Callable[[str, int, int], None]
+
+
+@dataclass
+class RunState:
+    """Everything one run reads, chooses and produces; stages fill it in order."""
+
+    input_path: Path
+    out_dir: Path
+    work_dir: Path
+    config: PipelineConfig
+    crs: pyproj.CRS | None = None
+    footprints_path: Path | None = None
+    checkpoints_path: Path | None = None
+    cloud: PointCloud | None = None
+    units: Units | None = None
+    footprints: list[vectors.Footprint] | None = None
+    checkpoints: checkpoints_io.CheckPoints | None = None
+    reference_classes: np.ndarray | None = None
+    dsm: Raster | None = None
+    dtm: Raster | None = None
+    ndsm: Raster | None = None
+    model_dsm: Raster | None = None
+    is_ground: np.ndarray | None = None
+    city: CityModel | None = None
+    labels: np.ndarray | None = None
+    auto: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    report: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def run(
+    input_path: str | Path,
+    out_dir: str | Path,
+    *,
+    crs: pyproj.CRS | None = None,
+    footprints: str | Path | None = None,
+    checkpoints: str | Path | None = None,
+    config: PipelineConfig | None = None,
+    overwrite: bool = False,
+    progress: ProgressCallback | None = None,
+) -> RunState:
+    """Run the point-cloud pipeline and write the output folder.
+
+    Parameters
+    ----------
+    input_path : path-like
+        LAS/LAZ or PLY point cloud.
+    out_dir : path-like
+        Output folder (see DESIGN.md for its contract).
+    crs : pyproj.CRS, optional
+        CRS of an input that carries none.
+    footprints, checkpoints : path-like, optional
+        Building outlines to use instead of detection; reference heights to check against.
+    config : PipelineConfig, optional
+    overwrite : bool
+        Replace an existing, non-empty ``out_dir``.
+    progress : callable, optional
+        Called as ``progress(stage_name, index, total)`` before each stage.
+
+    Raises
+    ------
+    InputError
+        Bad input or an existing output folder; nothing is written then.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
+        raise InputError(f"{out_dir}: output folder exists and is not empty; use --overwrite to replace it")
+    work_dir = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
+    shutil.rmtree(work_dir, ignore_errors=True)
+    state = RunState(
+        input_path=Path(input_path),
+        out_dir=out_dir,
+        work_dir=work_dir,
+        config=config or PipelineConfig(),
+        crs=crs,
+        footprints_path=Path(footprints) if footprints else None,
+        checkpoints_path=Path(checkpoints) if checkpoints else None,
+    )
+    try:
+        for index, (name, stage) in enumerate(STAGES):
+            if progress:
+                progress(name, index, len(STAGES))
+            start = time.perf_counter()
+            stage(state)
+            state.timings[name] = round(time.perf_counter() - start, 3)
+            log.info("stage %s done in %.2f s", name, state.timings[name])
+        _write_json(work_dir / "run.json", _run_record(state))
+        _publish(work_dir, out_dir)
+    finally:
+        shutil.rmtree(work_dir, ignore_errors=True)
+    return state
+
+
+# --------------------------------------------------------------------------- stages
+
+
+def read_inputs(s: RunState) -> None:
+    """Read and check every input before anything is computed."""
+    suffix = s.input_path.suffix.lower()
+    if suffix in (".las", ".laz"):
+        s.cloud = read_las(s.input_path, crs=s.crs)
+    elif suffix == ".ply":
+        from recon3d.io.ply import read_ply
+
+        s.cloud = read_ply(s.input_path, crs=s.crs)
+    elif not s.input_path.exists():
+        raise InputError(f"{s.input_path}: input file not found")
+    else:
+        raise InputError(f"{s.input_path}: unsupported input (expected .las, .laz or .ply)")
+    s.units = crs_units(s.cloud.crs, source=str(s.input_path))
+    if s.cloud.has_classes():
+        s.reference_classes = s.cloud.classification.copy()
+    if s.footprints_path:
+        s.footprints, notes = vectors.read_footprints(s.footprints_path, crs=s.cloud.crs)
+        s.notes += notes
+        _check_overlap(s)
+    if s.checkpoints_path:
+        s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
+    s.work_dir.mkdir(parents=True)
+
+
+def make_dsm(s: RunState) -> None:
+    cfg, u = s.config.dsm, s.units
+    spacing = dsm_stage.point_spacing(s.cloud.xyz[:, :2])
+    if cfg.resolution:
+        res, why = u.length(cfg.resolution), "config"
+    else:
+        res, why = dsm_stage.choose_resolution(spacing, u)
+    s.auto["dsm.resolution"] = {"value": res, "unit": u.name, "reason": why}
+    s.auto["point_spacing"] = {"value": round(spacing, 3), "unit": u.name}
+    max_cells = int(u.area(cfg.max_hole_area) / res**2)
+    s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells)
+
+
+def classify_ground(s: RunState) -> None:
+    result = ground_stage.classify_ground(s.cloud, s.config.ground, s.units, s.dsm.resolution)
+    s.is_ground = result.is_ground
+    s.auto["ground"] = result.params
+    if s.reference_classes is not None:
+        s.report["ground_filter"] = evaluate.ground_filter_errors(s.is_ground, s.reference_classes)
+
+
+def make_dtm(s: RunState) -> None:
+    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.is_ground], s.dsm)
+    s.ndsm = dtm_stage.make_ndsm(s.dsm, s.dtm)
+
+
+def find_buildings(s: RunState) -> None:
+    cfg, u = s.config.buildings, s.units
+    if s.footprints is not None:
+        polygons = [f.polygon for f in s.footprints]
+        ids = [f.id for f in s.footprints]
+        attrs = [dict(f.attributes, source="footprints") for f in s.footprints]
+    else:
+        vegetation = detect.vegetation_cells(s.cloud, s.dsm)
+        polygons = detect.detect_buildings(s.ndsm, vegetation, cfg, u)
+        ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
+        attrs = [{"source": "detected"} for _ in polygons]
+    s.labels = detect.label_footprints(polygons, s.dsm)
+    heights = measure_heights(
+        polygons, s.labels, s.dsm, s.dtm, percentile=cfg.roof_percentile, min_height=u.height(cfg.min_height)
+    )
+    buildings = []
+    for i, poly in enumerate(polygons):
+        attrs[i].update(cells=int(heights.cells[i]), raised_share=round(float(heights.raised_share[i]), 3))
+        buildings.append(Building(ids[i], poly, heights.ground_z[i], heights.roof_z[i], attributes=attrs[i]))
+    lo = s.cloud.bounds[0]
+    s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)))
+
+
+def build_solids(s: RunState) -> None:
+    import shapely
+
+    u = s.units
+    lo, hi = s.cloud.bounds
+    extent = shapely.box(lo[0], lo[1], hi[0], hi[1])
+    for b in s.city:
+        reason = None
+        poly = lod.clean_footprint(b.footprint, u.length(0.01))
+        if poly is None:
+            reason = "degenerate_footprint"
+        elif not poly.intersects(extent):
+            reason = "outside_data"
+        elif b.attributes["cells"] == 0 or not np.isfinite(b.roof_z):
+            reason = "no_points"
+        elif not np.isfinite(b.ground_z):
+            reason = "no_terrain"
+        elif b.height < u.height(0.5):
+            reason = "too_low"
+        if reason:
+            b.status, b.reason = "failed", reason
+            continue
+        b.footprint = poly
+        b.solids["1"] = lod.lod1_solid(poly, b.ground_z, b.roof_z, s.city.frame)
+    failed = [b.id for b in s.city if b.status != "ok"]
+    if failed:
+        s.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
+
+
+def rasterize_model(s: RunState) -> None:
+    s.model_dsm = model_dsm(s.city, s.dtm)
+
+
+def evaluate_products(s: RunState) -> None:
+    u = s.units
+    tables = []
+    if s.reference_classes is not None:
+        ref_ground = s.cloud.xyz[s.reference_classes == ASPRS.GROUND]
+        tables.append(evaluate.against_points(s.dtm, ref_ground, product="DTM", reference="provider ground points", units=u))
+        s.report["buildings_vs_provider"] = evaluate.building_coverage(s.cloud, s.reference_classes, s.labels, s.dsm)
+    if s.checkpoints is not None:
+        products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
+        tables += evaluate.against_checkpoints(products, s.checkpoints, u)
+    roofs = s.dsm.data - s.model_dsm.data
+    on_buildings = (s.labels > 0) & np.isfinite(roofs)
+    from recon3d.core.accuracy import AccuracyReport
+
+    tables.append(
+        AccuracyReport.from_errors(
+            -roofs[on_buildings], product="model DSM", reference="measured DSM on buildings", metres_per_unit=u.vertical
+        )
+    )
+    s.report["accuracy"] = [t.to_dict() for t in tables]
+    statuses = [b.status for b in s.city]
+    s.report["buildings"] = {
+        "count": len(s.city),
+        "with_solid": sum(bool(b.solids) for b in s.city),
+        "failed": {r: sum(b.reason == r for b in s.city) for r in sorted({b.reason for b in s.city if b.reason})},
+        "statuses": {k: statuses.count(k) for k in sorted(set(statuses))},
+    }
+
+
+def write_products(s: RunState) -> None:
+    from recon3d.io.cityjson import write_cityjson
+    from recon3d.io.gltf import write_glb
+    from recon3d.io.obj import write_obj
+
+    w = s.work_dir
+    for name, raster in (("dsm", s.dsm), ("dtm", s.dtm), ("ndsm", s.ndsm), ("model_dsm", s.model_dsm)):
+        raster.tags.setdefault("height_units", s.units.name)
+        write_raster(raster, w / f"{name}.tif")
+    write_las(_classified_cloud(s), w / "cloud.laz")
+    write_cityjson(s.city, w / "buildings.city.json")
+    write_obj(s.city, w / "buildings.obj")
+    write_glb(s.city, w / "buildings.glb")
+    _write_footprints(s, w / "footprints.geojson")
+    _write_json(w / "report.json", s.report)
+
+
+STAGES: list[tuple[str, Callable[[RunState], None]]] = [
+    ("read", read_inputs),
+    ("dsm", make_dsm),
+    ("ground", classify_ground),
+    ("dtm", make_dtm),
+    ("buildings", find_buildings),
+    ("lod", build_solids),
+    ("model_dsm", rasterize_model),
+    ("evaluate", evaluate_products),
+    ("write", write_products),
+]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check_overlap(s: RunState) -> None:
+    lo, hi = s.cloud.bounds
+    import shapely
+
+    box = shapely.box(lo[0], lo[1], hi[0], hi[1])
+    if not any(f.polygon.intersects(box) for f in s.footprints):
+        raise InputError(
+            f"{s.footprints_path}: none of the {len(s.footprints)} footprints overlaps the point cloud "
+            f"(cloud extent {lo[0]:.1f},{lo[1]:.1f} - {hi[0]:.1f},{hi[1]:.1f} in {crs_name(s.cloud.crs)}); "
+            "check the footprints' CRS"
+        )
+
+
+def _classified_cloud(s: RunState) -> PointCloud:
+    """The input cloud with recon3d's classes: ground 2, building 6, other 1."""
+    classes = np.full(len(s.cloud), ASPRS.UNCLASSIFIED, np.uint8)
+    classes[s.is_ground] = ASPRS.GROUND
+    row, col = s.dsm.rowcol(s.cloud.xyz[:, 0], s.cloud.xyz[:, 1])
+    rows, cols = s.dsm.shape
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    in_building = np.zeros(len(s.cloud), bool)
+    with_solid = np.array([False] + [bool(b.solids) for b in s.city])
+    in_building[ok] = with_solid[s.labels[row[ok], col[ok]]]
+    above = s.cloud.xyz[:, 2] - s.dtm.sample(s.cloud.xyz[:, 0], s.cloud.xyz[:, 1], bilinear=False)
+    classes[in_building & ~s.is_ground & (above >= s.units.height(s.config.buildings.min_height / 2))] = ASPRS.BUILDING
+    return s.cloud.with_attribute("classification", classes)
+
+
+def _write_footprints(s: RunState, path: Path) -> None:
+    u = s.units
+    props = []
+    for b in s.city:
+        p = {"id": b.id, "status": b.status, "reason": b.reason or "", "roof_type": "flat" if b.solids else ""}
+        p.update(ground_z=_num(b.ground_z), roof_z=_num(b.roof_z), height_m=_num(b.height * u.vertical))
+        p.update({k: v for k, v in b.attributes.items() if isinstance(v, str | int | float) and k not in p})
+        props.append(p)
+    vectors.write_features(path, [b.footprint for b in s.city], props, s.city.crs)
+
+
+def _num(v: float) -> float | None:
+    return round(float(v), 3) if np.isfinite(v) else None
+
+
+def _run_record(s: RunState) -> dict:
+    import laspy
+    import rasterio
+    import scipy
+    import shapely
+    import trimesh
+
+    return {
+        "recon3d": __version__,
+        "inputs": {
+            "point_cloud": str(s.input_path),
+            "points": len(s.cloud),
+            "crs": crs_name(s.cloud.crs),
+            "units": {"horizontal": s.units.name, "metres_per_unit": s.units.horizontal,
+                      "vertical_metres_per_unit": s.units.vertical, "vertical_from": s.units.vertical_source},
+            "provider_classes": s.reference_classes is not None,
+            "footprints": str(s.footprints_path) if s.footprints_path else None,
+            "checkpoints": str(s.checkpoints_path) if s.checkpoints_path else None,
+        },
+        "config": s.config.to_dict(),
+        "chosen": s.auto,
+        "local_frame_origin": list(s.city.frame.origin),
+        "notes": s.notes,
+        "versions": {m.__name__: getattr(m, "__version__", "?") for m in (np, scipy, laspy, rasterio, shapely, trimesh)},
+        "timings_s": s.timings,
+    }
+
+
+def _write_json(path: Path, data: dict) -> None:
+    from recon3d.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, ensure_ascii=False, default=_json_default), encoding="utf-8")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _publish(work_dir: Path, out_dir: Path) -> None:
+    """Move the finished work folder onto ``out_dir``, replacing an old one last."""
+    old = None
+    if out_dir.exists():
+        old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
+        os.replace(out_dir, old)
+    os.replace(work_dir, out_dir)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()

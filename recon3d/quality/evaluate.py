@@ -1,0 +1,97 @@
+"""Accuracy of the products against reference heights and reference classes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon3d.core.accuracy import AccuracyReport
+from recon3d.core.geo import Units
+from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.raster import Raster
+from recon3d.io.checkpoints import CheckPoints
+
+__all__ = ["against_checkpoints", "against_points", "building_coverage", "ground_filter_errors"]
+
+
+def against_points(
+    raster: Raster, xyz: np.ndarray, *, product: str, reference: str, units: Units
+) -> AccuracyReport:
+    """Raster (bilinear) minus reference heights at (n, 3) reference points, in metres."""
+    errors = raster.sample(xyz[:, 0], xyz[:, 1]) - xyz[:, 2]
+    return AccuracyReport.from_errors(
+        errors, product=product, reference=reference, metres_per_unit=units.vertical
+    )
+
+
+def against_checkpoints(
+    products: dict[str, Raster], points: CheckPoints, units: Units
+) -> list[AccuracyReport]:
+    """Tables for every product against the check points that measure it.
+
+    The DSM and the model DSM are compared with every check point, the DTM with the
+    ground points; with kinds given, the DSM and the model DSM also get a roof-only table.
+    """
+    tables = []
+    subsets = {"all": np.ones(len(points), bool)}
+    for kind in ("ground", "roof"):
+        if np.any(points.kinds == kind):
+            subsets[kind] = points.kinds == kind
+    for name, raster in products.items():
+        for kind, sel in subsets.items():
+            if name == "DTM" and kind != "ground":
+                continue
+            tables.append(
+                against_points(
+                    raster, points.xyz[sel], product=name, reference=f"check points ({kind})", units=units
+                )
+            )
+    return tables
+
+
+def ground_filter_errors(is_ground: np.ndarray, reference_classes: np.ndarray) -> dict:
+    """ISPRS filter-test errors against the provider's classes.
+
+    Points the provider labelled ground (2) against vegetation or building (3, 4, 5, 6);
+    unclassified and other classes are left out. Type I: ground rejected; Type II:
+    object accepted as ground; total: all misclassified; Cohen's kappa.
+    """
+    ref_ground = reference_classes == ASPRS.GROUND
+    ref_object = np.isin(reference_classes, (3, 4, 5, 6))
+    scored = ref_ground | ref_object
+    a = int(np.sum(ref_ground & is_ground))
+    b = int(np.sum(ref_ground & ~is_ground))
+    c = int(np.sum(ref_object & is_ground))
+    d = int(np.sum(ref_object & ~is_ground))
+    n = a + b + c + d
+    if n == 0:
+        return {"n": 0}
+    po = (a + d) / n
+    pe = ((a + b) * (a + c) + (c + d) * (b + d)) / n**2
+    return {
+        "n": n,
+        "type_i_percent": 100.0 * b / max(a + b, 1),
+        "type_ii_percent": 100.0 * c / max(c + d, 1),
+        "total_percent": 100.0 * (b + c) / n,
+        "kappa": (po - pe) / (1 - pe) if pe < 1 else 1.0,
+        "scored_share_percent": 100.0 * float(np.mean(scored)),
+    }
+
+
+def building_coverage(cloud: PointCloud, reference_classes: np.ndarray, labels: np.ndarray, grid: Raster) -> dict:
+    """Point-based detection scores against the provider's building class (6).
+
+    completeness: share of provider building points inside a footprint;
+    correctness: share of points inside footprints, and not ground, that the
+    provider calls building.
+    """
+    row, col = grid.rowcol(cloud.xyz[:, 0], cloud.xyz[:, 1])
+    ok = (row >= 0) & (row < grid.shape[0]) & (col >= 0) & (col < grid.shape[1])
+    inside = np.zeros(len(cloud), bool)
+    inside[ok] = labels[row[ok], col[ok]] > 0
+    ref_building = reference_classes == ASPRS.BUILDING
+    above = inside & (reference_classes != ASPRS.GROUND)
+    return {
+        "reference_building_points": int(ref_building.sum()),
+        "completeness_percent": 100.0 * float(np.mean(inside[ref_building])) if ref_building.any() else None,
+        "correctness_percent": 100.0 * float(np.mean(ref_building[above])) if above.any() else None,
+    }

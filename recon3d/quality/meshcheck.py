@@ -1,0 +1,321 @@
+"""val3dity-style geometric validation of building solids.
+
+The checks follow the error codes of val3dity and of the OGC CityGML Quality
+Interoperability Experiment (https://github.com/tudelft3d/CityGML-QIE-3Dvalidation,
+``errors/errors.md``), so a report can be compared with val3dity's:
+
+====  ==================================  ============================================
+code  name                                meaning
+====  ==================================  ============================================
+101   TOO_FEW_POINTS                      a ring has fewer than 3 (distinct) points
+102   CONSECUTIVE_POINTS_SAME             two consecutive points within ``snap``
+105   RING_COLLAPSED                      a ring has (almost) no area: a degenerate
+                                          surface collapsed to a line or a point
+203   NON_PLANAR_POLYGON_DISTANCE_PLANE   a point lies further than ``planarity_tol``
+                                          from the surface's least-squares plane
+301   TOO_FEW_POLYGONS                    fewer than 4 surfaces
+302   NOT_CLOSED                          an edge is used by one ring only (a hole)
+303   NON_MANIFOLD_VERTEX                 the surfaces around a vertex form more than
+                                          one umbrella
+304   NON_MANIFOLD_EDGE                   an edge is used by more than 2 rings
+307   POLYGON_WRONG_ORIENTATION           an edge is traversed twice in the same
+                                          direction (a surface is flipped)
+405   WRONG_ORIENTATION_SHELL             the shell is inside out (signed volume <= 0)
+====  ==================================  ============================================
+
+Vertices closer than ``snap`` are merged first (as val3dity does), and the shell
+topology is checked on the polygon rings, not on a triangulation, so a surface
+split into triangles elsewhere would show up as 302. As in val3dity, 303 and 405 are
+only tested on a shell that is closed, edge-manifold and consistently oriented.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from recon3d.core.city import CityModel, Solid, newell_normal
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ISSUE_NAMES", "MeshIssue", "check_city", "check_solid"]
+
+#: Error code -> name, as in val3dity / the CityGML QIE.
+ISSUE_NAMES: dict[int, str] = {
+    101: "TOO_FEW_POINTS",
+    102: "CONSECUTIVE_POINTS_SAME",
+    105: "RING_COLLAPSED",
+    203: "NON_PLANAR_POLYGON_DISTANCE_PLANE",
+    301: "TOO_FEW_POLYGONS",
+    302: "NOT_CLOSED",
+    303: "NON_MANIFOLD_VERTEX",
+    304: "NON_MANIFOLD_EDGE",
+    307: "POLYGON_WRONG_ORIENTATION",
+    405: "WRONG_ORIENTATION_SHELL",
+}
+
+
+@dataclass(frozen=True)
+class MeshIssue:
+    """One validation error of a solid.
+
+    Attributes
+    ----------
+    code : int
+        val3dity error code (see :data:`ISSUE_NAMES`).
+    name : str
+        val3dity error name.
+    detail : str
+        Human-readable specifics (distances, counts, vertex or surface numbers).
+    surface : int or None
+        Index of the offending surface in ``Solid.surfaces``; None for shell errors.
+    """
+
+    code: int
+    name: str
+    detail: str
+    surface: int | None = None
+
+
+def _issue(code: int, detail: str, surface: int | None = None) -> MeshIssue:
+    return MeshIssue(code, ISSUE_NAMES[code], detail, surface)
+
+
+def check_solid(
+    solid: Solid, *, planarity_tol: float = 0.01, snap: float = 0.001
+) -> list[MeshIssue]:
+    """Validate one solid (a single outer shell).
+
+    Parameters
+    ----------
+    solid : Solid
+        Surfaces as rings of vertex indices, outer rings counter-clockwise from outside.
+    planarity_tol : float
+        Largest allowed distance of a vertex to its surface's fitted plane (203), in
+        the solid's length units (val3dity's default: 1 cm).
+    snap : float
+        Vertices closer than this are the same vertex (val3dity's default: 1 mm).
+
+    Returns
+    -------
+    list of MeshIssue
+        Empty for a valid solid.
+    """
+    vid = snap_vertices(solid.vertices, snap)
+    issues: list[MeshIssue] = []
+    if len(solid.surfaces) < 4:
+        issues.append(_issue(301, f"{len(solid.surfaces)} surfaces, a solid needs at least 4"))
+    rings, owners = [], []
+    for i, surface in enumerate(solid.surfaces):
+        found, clean = _surface_rings(solid.vertices, vid, surface, i, snap)
+        issues += found
+        issues += _planarity(solid.vertices, [r for _, r in clean], i, planarity_tol)
+        rings += [ids for ids, _ in clean]
+        owners += [i] * len(clean)
+    shell = _shell_issues(rings, owners)
+    issues += shell
+    if not shell and rings:
+        issues += _vertex_manifold(rings)
+        issues += _orientation(solid)
+    return issues
+
+
+def check_city(
+    city: CityModel, *, planarity_tol: float = 0.01, snap: float = 0.001
+) -> dict[str, dict[str, list[MeshIssue]]]:
+    """Validate every solid of a city model.
+
+    Returns
+    -------
+    dict
+        ``{building id: {lod: [MeshIssue, ...]}}`` for every building with a solid;
+        an empty list means the solid is valid. ``snap`` and ``planarity_tol`` are
+        in CRS units.
+    """
+    report: dict[str, dict[str, list[MeshIssue]]] = {}
+    for building in city.buildings:
+        if not building.solids:
+            continue
+        report[building.id] = {
+            lod: check_solid(solid, planarity_tol=planarity_tol, snap=snap)
+            for lod, solid in sorted(building.solids.items(), key=lambda kv: float(kv[0]))
+        }
+    n_bad = sum(bool(v) for lods in report.values() for v in lods.values())
+    log.info("mesh check: %d of %d solids have issues", n_bad, sum(map(len, report.values())))
+    return report
+
+
+def snap_vertices(vertices: np.ndarray, snap: float) -> np.ndarray:
+    """Canonical vertex id per vertex, merging vertices closer than ``snap``.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    snap : float
+
+    Returns
+    -------
+    (n,) int64
+        Equal ids for vertices in one cluster (single linkage within ``snap``).
+    """
+    n = len(vertices)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    pairs = cKDTree(vertices).query_pairs(snap, output_type="ndarray")
+    graph = scipy.sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(np.int64)
+
+
+def _surface_rings(
+    vertices: np.ndarray, vid: np.ndarray, surface: list[np.ndarray], index: int, snap: float
+) -> tuple[list[MeshIssue], list[tuple[np.ndarray, np.ndarray]]]:
+    """Ring-level checks (101, 102, 105) of one surface.
+
+    Returns
+    -------
+    issues : list of MeshIssue
+    clean : list of ((k,) snapped ids, (k,) vertex indices)
+        The usable rings, consecutive repeats removed.
+    """
+    issues, clean = [], []
+    for j, ring in enumerate(surface):
+        where = f"ring {j}" if j else "outer ring"
+        if len(ring) < 3:
+            issues.append(_issue(101, f"{where} has {len(ring)} points", index))
+            continue
+        ids = vid[ring]
+        repeat = ids == np.roll(ids, -1)
+        if repeat.any():
+            issues.append(_issue(102, f"{where}: {int(repeat.sum())} repeated points", index))
+        ids, ring = ids[~repeat], ring[~repeat]
+        if len(ids) < 3:
+            issues.append(_issue(101, f"{where} has {len(ids)} distinct points", index))
+            continue
+        if _collapsed(vertices[ring], snap):
+            issues.append(_issue(105, f"{where} has no area (degenerate surface)", index))
+        clean.append((ids, ring))
+    return issues, clean
+
+
+def _collapsed(points: np.ndarray, snap: float) -> bool:
+    """True when a (k, 3) ring is thinner than ``snap``: area < snap * perimeter / 2.
+
+    A w x L rectangle passes this test exactly when w < snap.
+    """
+    area = 0.5 * np.linalg.norm(newell_normal(points))
+    perimeter = np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1).sum()
+    return bool(area < 0.5 * snap * perimeter)
+
+
+def _planarity(
+    vertices: np.ndarray, rings: list[np.ndarray], index: int, tol: float
+) -> list[MeshIssue]:
+    """203 when a vertex of the surface's rings is further than ``tol`` from their fitted plane."""
+    if not rings:
+        return []
+    points = vertices[np.concatenate(rings)]
+    centred = points - points.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    distance = np.abs(centred @ normal)
+    worst = float(distance.max())
+    if worst <= tol:
+        return []
+    return [_issue(203, f"a vertex is {worst:.4f} from the fitted plane (tolerance {tol})", index)]
+
+
+def _directed_edges(rings: list[np.ndarray], owners: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 2) directed edges of all rings and (m,) the surface owning each."""
+    edges = np.concatenate([np.column_stack([r, np.roll(r, -1)]) for r in rings])
+    owner = np.repeat(owners, [len(r) for r in rings])
+    return edges, owner
+
+
+def _shell_issues(rings: list[np.ndarray], owners: list[int]) -> list[MeshIssue]:
+    """302, 304 and 307 from how often, and in which direction, each ring edge is used."""
+    if not rings:
+        return [_issue(302, "no usable surface")]
+    edges, owner = _directed_edges(rings, owners)
+    undirected = np.sort(edges, axis=1)
+    _, inverse, count = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+    uses = count[inverse.reshape(-1)]
+    issues = []
+    if (count == 1).any():
+        where = _few(np.unique(owner[uses == 1]))
+        n = int((count == 1).sum())
+        issues.append(_issue(302, f"{n} edges used by one surface only (surfaces {where})"))
+    if (count > 2).any():
+        where = _few(np.unique(owner[uses > 2]))
+        n = int((count > 2).sum())
+        issues.append(_issue(304, f"{n} edges used by more than 2 surfaces (surfaces {where})"))
+    return issues + _flipped(edges, owner, uses)
+
+
+def _flipped(edges: np.ndarray, owner: np.ndarray, uses: np.ndarray) -> list[MeshIssue]:
+    """307 for the surfaces most of whose shared edges run the same way as their neighbour's.
+
+    An edge shared by two correctly oriented surfaces is traversed once in each
+    direction. A flipped surface conflicts on all its edges, its neighbours on one
+    each, so surfaces conflicting on more than half of their shared edges are named.
+    """
+    _, inverse, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    same = (count[inverse.reshape(-1)] > 1) & (uses == 2)
+    if not same.any():
+        return []
+    n = int(owner.max()) + 1
+    shared = np.bincount(owner[uses == 2], minlength=n)
+    bad = np.bincount(owner[same], minlength=n)
+    flipped = np.flatnonzero(bad * 2 > np.maximum(shared, 1))
+    detail = "{} of {} shared edges run the same way as the neighbour's"
+    if not len(flipped):
+        return [_issue(307, f"{int(same.sum()) // 2} edges traversed twice in the same direction")]
+    return [_issue(307, detail.format(bad[s], shared[s]), int(s)) for s in flipped]
+
+
+def _vertex_manifold(rings: list[np.ndarray]) -> list[MeshIssue]:
+    """303 where the surfaces around a vertex form several umbrellas (pinched vertices).
+
+    The link of vertex v joins, for every ring corner (prev, v, next), the nodes
+    (v, prev) and (v, next); v is manifold when its link is one connected cycle.
+    """
+    centre = np.concatenate(rings)
+    prev = np.concatenate([np.roll(r, 1) for r in rings])
+    nxt = np.concatenate([np.roll(r, -1) for r in rings])
+    nodes, inverse = np.unique(
+        np.column_stack([np.r_[centre, centre], np.r_[prev, nxt]]), axis=0, return_inverse=True
+    )
+    inverse = inverse.reshape(-1)
+    m = len(centre)
+    shape = (len(nodes), len(nodes))
+    graph = scipy.sparse.coo_matrix((np.ones(m), (inverse[:m], inverse[m:])), shape=shape)
+    _, label = connected_components(graph, directed=False)
+    umbrellas = np.unique(np.column_stack([nodes[:, 0], label]), axis=0)
+    vertex, fans = np.unique(umbrellas[:, 0], return_counts=True)
+    pinched = vertex[fans > 1]
+    if not len(pinched):
+        return []
+    return [_issue(303, f"{len(pinched)} vertices where separate parts of the shell touch")]
+
+
+def _orientation(solid: Solid) -> list[MeshIssue]:
+    """405 when the triangulated shell has a signed volume <= 0 (normals point inward)."""
+    mesh = solid.to_trimesh()
+    if not len(mesh.faces):
+        return []
+    v = mesh.vertices - mesh.vertices.mean(axis=0)
+    a, b, c = (v[mesh.faces[:, k]] for k in range(3))
+    volume = float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
+    if volume > 0:
+        return []
+    return [_issue(405, f"signed volume {volume:.4g} <= 0: the shell is inside out")]
+
+
+def _few(values: np.ndarray, limit: int = 6) -> str:
+    """Comma-separated first ``limit`` values, with an ellipsis when there are more."""
+    text = ", ".join(str(int(v)) for v in values[:limit])
+    return text + (", ..." if len(values) > limit else "")

@@ -1,0 +1,149 @@
+"""Gridding a point cloud into a digital surface model (DSM)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from recon3d.core.geo import Units
+from recon3d.core.pointcloud import PointCloud
+from recon3d.core.raster import Raster, grid_for_bounds
+
+log = logging.getLogger(__name__)
+
+__all__ = ["choose_resolution", "fill_small_holes", "grid_points", "make_dsm", "point_spacing"]
+
+#: "Nice" cell sizes, in CRS units, from which the automatic resolution is picked.
+NICE_STEPS = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 20.0)
+
+
+def point_spacing(xy: np.ndarray) -> float:
+    """Mean spacing of points (CRS units): sqrt(covered area / number of points).
+
+    The covered area counts the cells of a coarse grid that hold at least one point, so
+    an irregular strip is not charged for the empty corners of its bounding box.
+
+    Parameters
+    ----------
+    xy : (n, 2) float
+    """
+    n = len(xy)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    extent = max(float(np.max(hi - lo)), 1e-9)
+    cell = extent / 64.0  # coarse enough that every covered cell holds points
+    for _ in range(4):
+        ij = np.floor((xy - lo) / cell).astype(np.int64)
+        occupied = len(np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]))
+        if n / occupied >= 16 or cell >= extent:
+            break
+        cell *= 2.0
+    return math.sqrt(occupied * cell * cell / n)
+
+
+def choose_resolution(spacing: float, units: Units) -> tuple[float, str]:
+    """DSM cell size: the nice step nearest (in log scale) to twice the point spacing.
+
+    Two spacings per cell leave about four points per cell, enough for a highest-point
+    DSM with few holes; nice steps make grids of different runs line up.
+    """
+    target = 2.0 * spacing
+    res = min(NICE_STEPS, key=lambda s: abs(math.log(s / target)))
+    reason = (
+        f"mean point spacing {spacing * units.horizontal:.2f} m; "
+        f"nearest nice cell size to 2 x spacing ({target:.2f} {units.name})"
+    )
+    return res, reason
+
+
+def grid_points(
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, reducer: str = "max"
+) -> np.ndarray:
+    """Reduce point heights per grid cell.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+    transform : affine.Affine
+    shape : (rows, cols)
+    reducer : {"max", "min", "mean", "count"}
+
+    Returns
+    -------
+    (rows, cols) float64
+        NaN in cells without points (0 for "count").
+    """
+    rows, cols = shape
+    col = np.floor((xyz[:, 0] - transform.c) / transform.a).astype(np.int64)
+    row = np.floor((xyz[:, 1] - transform.f) / transform.e).astype(np.int64)
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    idx = row[ok] * cols + col[ok]
+    z = xyz[ok, 2]
+    if reducer == "count":
+        return np.bincount(idx, minlength=rows * cols).reshape(shape).astype(np.float64)
+    if reducer == "mean":
+        s = np.bincount(idx, weights=z, minlength=rows * cols)
+        c = np.bincount(idx, minlength=rows * cols)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(c > 0, s / c, np.nan).reshape(shape)
+    out = np.full(rows * cols, -np.inf if reducer == "max" else np.inf)
+    (np.maximum if reducer == "max" else np.minimum).at(out, idx, z)
+    out[~np.isfinite(out)] = np.nan
+    return out.reshape(shape)
+
+
+def fill_small_holes(data: np.ndarray, max_cells: int) -> np.ndarray:
+    """Fill NaN regions of at most ``max_cells`` cells that do not touch the border.
+
+    Each hole cell takes the mean of the valid cells on the hole's rim (its one-cell
+    dilation): holes in a DSM are small occlusions or gaps between scan lines, whose
+    best estimate is the surrounding surface. Larger or border-touching holes stay NaN.
+
+    Parameters
+    ----------
+    data : (rows, cols) float
+    max_cells : int
+
+    Returns
+    -------
+    (rows, cols) float, a copy.
+    """
+    out = data.copy()
+    holes = ~np.isfinite(out)
+    labels, n = ndimage.label(holes)
+    if n == 0:
+        return out
+    sizes = np.bincount(labels.ravel())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    keep = (sizes <= max_cells) & (np.arange(n + 1) > 0)
+    keep[border] = False
+    fill = keep[labels]
+    if not fill.any():
+        return out
+    rim = ndimage.grey_dilation(np.where(fill, labels, 0), size=3) * ~holes
+    rim_labels = rim.ravel()
+    values = np.nan_to_num(out).ravel()
+    sums = np.bincount(rim_labels, weights=values, minlength=n + 1)
+    counts = np.bincount(rim_labels, minlength=n + 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = sums / counts
+    out[fill] = means[labels[fill]]
+    return out
+
+
+def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int) -> Raster:
+    """Highest point per cell, small holes filled, on a grid snapped to the resolution.
+
+    Points classified as noise (7) are left out.
+    """
+    xyz = cloud.xyz
+    c = cloud.classification
+    if c is not None:
+        xyz = xyz[c != 7]
+    lo, hi = cloud.bounds
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
+    dsm = grid_points(xyz, transform, shape, reducer="max")
+    dsm = fill_small_holes(dsm, max_hole_cells)
+    return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": "highest point per cell"})

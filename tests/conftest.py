@@ -1,0 +1,64 @@
+"""Shared fixtures: paths to the real data in ../shared/data and cached pipeline runs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+DELFT = "lidar/delft_ahn3_strip.laz"
+IGN = "lidar/ign_village_2154.laz"
+AUTZEN = "lidar/autzen_trim.laz"
+BDUNI = "footprints/ign_village_2154/bduni_buildings.shp"
+CITYJSON_SCHEMA = "schemas/cityjson-2.0.2/cityjson.min.schema.json"
+
+
+def shared(relative: str) -> Path:
+    """Path of a file in ../shared/data; fails in CI, skips elsewhere, when it is missing."""
+    path = SHARED_DATA / relative
+    if not path.exists():
+        message = f"shared test data missing: {path}"
+        if os.environ.get("CI") == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.fixture(scope="session")
+def delft_run(tmp_path_factory):
+    """The Delft AHN3 strip through `recon3d run` with its CRS given (it has none)."""
+    from recon3d.core.geo import parse_crs
+    from recon3d.pipeline.run import run
+
+    out = tmp_path_factory.mktemp("delft") / "out"
+    return run(shared(DELFT), out, crs=parse_crs("EPSG:7415"))
+
+
+@pytest.fixture(scope="session")
+def ign_footprints_run(tmp_path_factory):
+    """The IGN village with its BD Uni footprints."""
+    from recon3d.pipeline.run import run
+
+    out = tmp_path_factory.mktemp("ign_fp") / "out"
+    return run(shared(IGN), out, footprints=shared(BDUNI))
+
+
+@pytest.fixture(scope="session")
+def ign_run(tmp_path_factory):
+    """The IGN village, buildings detected from the nDSM."""
+    from recon3d.pipeline.run import run
+
+    out = tmp_path_factory.mktemp("ign") / "out"
+    return run(shared(IGN), out)
+
+
+@pytest.fixture(scope="session")
+def autzen_run(tmp_path_factory):
+    """Autzen: a CRS in US feet, classes 1 and 2 only."""
+    from recon3d.pipeline.run import run
+
+    out = tmp_path_factory.mktemp("autzen") / "out"
+    return run(shared(AUTZEN), out)

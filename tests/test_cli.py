@@ -1,0 +1,127 @@
+"""The command line: bad input gives one line naming the file, exit 1, and no output."""
+
+import numpy as np
+import pyproj
+import pytest
+import shapely
+from click.testing import CliRunner
+
+from conftest import BDUNI, DELFT, IGN, shared
+from recon3d.cli import cli
+
+
+def _run(args):
+    return CliRunner().invoke(cli, ["-q", "run", *map(str, args)])
+
+
+def _assert_clean_failure(result, out, *needles):
+    assert result.exit_code == 1, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("recon3d: error:"), result.output
+    for n in needles:
+        assert n in lines[0]
+    assert "Traceback" not in result.output
+    assert not out.exists() or not any(out.iterdir())
+    assert not list(out.parent.glob(f".{out.name}.partial-*"))
+
+
+def test_help_lists_options():
+    result = CliRunner().invoke(cli, ["run", "--help"])
+    assert result.exit_code == 0
+    for option in ("--crs", "--footprints", "--checkpoints", "--overwrite", "--set", "--config"):
+        assert option in result.output
+
+
+def test_missing_file(tmp_path):
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([tmp_path / "nope.laz", "-o", out]), out, "nope.laz", "not found")
+
+
+def test_corrupt_laz(tmp_path):
+    bad = tmp_path / "broken.laz"
+    data = shared(IGN).read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([bad, "-o", out]), out, "broken.laz", "cannot read")
+
+
+def test_empty_cloud(tmp_path):
+    import laspy
+
+    las = laspy.read(shared(IGN))
+    las.points = las.points[:0]
+    empty = tmp_path / "empty.laz"
+    las.write(empty)
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([empty, "-o", out]), out, "empty.laz", "empty")
+
+
+def test_no_crs_and_unknown_epsg(tmp_path):
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([shared(DELFT), "-o", out]), out, "delft_ahn3_strip.laz", "--crs")
+    _assert_clean_failure(_run([shared(DELFT), "-o", out, "--crs", "EPSG:999999"]), out, "EPSG:999999")
+
+
+def test_footprints_that_miss_the_data(tmp_path):
+    from recon3d.io.vectors import write_features
+
+    far = tmp_path / "far.geojson"
+    write_features(far, [shapely.box(0, 0, 10, 10)], [{"id": "x"}], pyproj.CRS.from_epsg(2154))
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([shared(IGN), "-o", out, "--footprints", far]), out, "far.geojson", "overlaps")
+
+
+def test_footprints_without_crs(tmp_path):
+    import pyogrio
+
+    box = shapely.box(870210, 6617090, 870230, 6617110)
+    shp = tmp_path / "nocrs.shp"  # a shapefile without .prj
+    pyogrio.raw.write(shp, np.array([shapely.to_wkb(box)], dtype=object), [], fields=[], geometry_type="Polygon", crs=None, driver="ESRI Shapefile")
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([shared(IGN), "-o", out, "--footprints", shp]), out, "nocrs.shp", "no CRS")
+    # GeoJSON without a crs member is WGS84 by definition: projected numbers in it are caught
+    gj = tmp_path / "projected.geojson"
+    gj.write_text('{"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": '
+                  + shapely.to_geojson(box) + "}]}")
+    _assert_clean_failure(_run([shared(IGN), "-o", out, "--footprints", gj]), out, "projected.geojson", "longitude/latitude")
+
+
+def test_footprints_in_another_crs_are_reprojected(tmp_path):
+    from recon3d.io.vectors import read_footprints, write_features
+    from recon3d.core.geo import parse_crs
+
+    fps, _ = read_footprints(shared(BDUNI), crs=parse_crs("EPSG:2154"))
+    t = pyproj.Transformer.from_crs(2154, 4326, always_xy=True)
+    geoms = [shapely.transform(f.polygon, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1]))) for f in fps]
+    wgs = tmp_path / "bduni_wgs84.geojson"
+    write_features(wgs, geoms, [{"id": f.id} for f in fps], pyproj.CRS.from_epsg(4326))
+    out = tmp_path / "out"
+    result = _run([shared(IGN), "-o", out, "--footprints", wgs])
+    assert result.exit_code == 0, result.output
+    import json
+
+    fc = json.loads((out / "footprints.geojson").read_text())
+    assert len(fc["features"]) == 40
+    assert fc["bbox"][0] > 800000  # Lambert-93 metres, not degrees
+
+
+def test_existing_output_needs_overwrite(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    keep = out / "mine.txt"
+    keep.write_text("user data")
+    result = _run([shared(IGN), "-o", out])
+    assert result.exit_code == 1 and "--overwrite" in result.output
+    assert keep.read_text() == "user data"
+    result = _run([shared(IGN), "-o", out, "--overwrite", "--set", "dsm.resolution=1.0"])
+    assert result.exit_code == 0, result.output
+    assert not keep.exists() and (out / "dsm.tif").exists()
+    import rasterio
+
+    with rasterio.open(out / "dsm.tif") as src:
+        assert src.res == (1.0, 1.0)
+
+
+def test_bad_setting(tmp_path):
+    out = tmp_path / "out"
+    _assert_clean_failure(_run([shared(IGN), "-o", out, "--set", "dsm.resolutoin=1"]), out, "dsm.resolutoin")
