@@ -59,7 +59,7 @@ class GroundConfig:
     method : {"smrf", "provider"}
         "smrf" filters the points; "provider" trusts the input's class 2.
     cell : float or None
-        Cell of the minimum surface in metres; None uses the DSM resolution.
+        Cell of the minimum surface in metres; None uses 1 m, or the DSM cell if coarser.
     max_window : float or None
         Largest opening window in metres; None takes it from the largest building
         blob seen in the data (bounded to 10..60 m).

@@ -8,6 +8,7 @@ same buildings as the same cloud in metres.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,7 @@ from pyproj.exceptions import CRSError as _ProjCRSError
 
 from recon3d.errors import CRSError
 
-__all__ = ["LocalFrame", "Units", "crs_name", "crs_units", "parse_crs", "to_rasterio_crs"]
+__all__ = ["LocalFrame", "Units", "crs_authority", "crs_name", "crs_units", "parse_crs", "to_rasterio_crs"]
 
 
 def parse_crs(text: str | int | pyproj.CRS, *, source: str = "--crs") -> pyproj.CRS:
@@ -35,11 +36,20 @@ def parse_crs(text: str | int | pyproj.CRS, *, source: str = "--crs") -> pyproj.
         raise CRSError(f"{source}: unknown coordinate reference system {text!r}") from exc
 
 
+@functools.lru_cache(maxsize=64)
+def crs_authority(crs: pyproj.CRS, min_confidence: int = 70) -> tuple[str, str] | None:
+    """(authority, code) of a CRS, e.g. ("EPSG", "7415"), or None.
+
+    Cached: for a CRS given as bare WKT, PROJ searches its whole database (~0.1 s).
+    """
+    return crs.to_authority(min_confidence=min_confidence)
+
+
 def crs_name(crs: pyproj.CRS | None) -> str:
     """Short human name of a CRS, "EPSG:7415" where an authority code exists."""
     if crs is None:
         return "none"
-    auth = crs.to_authority(min_confidence=70)
+    auth = crs_authority(crs)
     return f"{auth[0]}:{auth[1]}" if auth else crs.name
 
 
@@ -49,7 +59,7 @@ def to_rasterio_crs(crs: pyproj.CRS | None):
         return None
     from rasterio.crs import CRS as RioCRS
 
-    auth = crs.to_authority(min_confidence=100)
+    auth = crs_authority(crs, 100)
     if auth and auth[0] == "EPSG":
         return RioCRS.from_epsg(int(auth[1]))
     return RioCRS.from_wkt(crs.to_wkt())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import pyproj
@@ -64,9 +65,9 @@ class PointCloud:
         """(n,) uint8 ASPRS codes, or None when the cloud carries none."""
         return self.attributes.get("classification")
 
-    @property
+    @cached_property
     def bounds(self) -> np.ndarray:
-        """(2, 3) array of the minimum and maximum corner."""
+        """(2, 3) array of the minimum and maximum corner (computed once; xyz is not modified in place)."""
         return np.stack([self.xyz.min(axis=0), self.xyz.max(axis=0)])
 
     def with_attribute(self, name: str, values: np.ndarray) -> PointCloud:

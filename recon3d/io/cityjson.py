@@ -30,7 +30,7 @@ import numpy as np
 import pyproj
 
 from recon3d.core.city import Building, CityModel, Solid
-from recon3d.core.geo import crs_name, crs_units
+from recon3d.core.geo import crs_authority, crs_name, crs_units
 from recon3d.errors import CRSError
 from recon3d.io import atomic_path
 
@@ -330,7 +330,7 @@ def crs_url(crs: pyproj.CRS | None) -> str | None:
     """
     if crs is None:
         return None
-    auth = crs.to_authority(min_confidence=70)
+    auth = crs_authority(crs)
     if not auth or auth[0].upper() not in _OGC_AUTHORITIES:
         log.warning("CityJSON: CRS %s has no EPSG/OGC code; referenceSystem omitted", crs_name(crs))
         return None

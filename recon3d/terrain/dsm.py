@@ -36,7 +36,8 @@ def point_spacing(xy: np.ndarray) -> float:
     cell = extent / 64.0  # coarse enough that every covered cell holds points
     for _ in range(4):
         ij = np.floor((xy - lo) / cell).astype(np.int64)
-        occupied = len(np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1]))
+        ny = int(ij[:, 1].max()) + 1
+        occupied = int(np.count_nonzero(np.bincount(ij[:, 0] * ny + ij[:, 1])))
         if n / occupied >= 16 or cell >= extent:
             break
         cell *= 2.0

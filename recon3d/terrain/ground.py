@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy import interpolate, ndimage
+from scipy import ndimage
 
 from recon3d.config import GroundConfig
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import grid_for_bounds
 from recon3d.terrain.dsm import grid_points
+from recon3d.terrain.dtm import fill_gaps
 
 log = logging.getLogger(__name__)
 
@@ -65,20 +66,28 @@ def classify_ground(
 
             raise InputError("ground.method='provider' but the input has no ground points (class 2)")
         return GroundResult(c == ASPRS.GROUND, {"method": "provider"})
-    return smrf(cloud.xyz, config, units, cell)
+    return smrf(cloud.xyz, config, units, cell, bounds=cloud.bounds)
 
 
-def smrf(xyz: np.ndarray, config: GroundConfig, units: Units, default_cell: float) -> GroundResult:
+def smrf(
+    xyz: np.ndarray, config: GroundConfig, units: Units, default_cell: float, *, bounds: np.ndarray | None = None
+) -> GroundResult:
     """Simple morphological filter; see the module docstring.
 
     Parameters
     ----------
     xyz : (n, 3) float
+    bounds : (2, 3) float, optional
+        Minimum and maximum corner of ``xyz`` when already known.
     """
     params: dict = {"method": "smrf"}
-    cell = units.length(config.cell) if config.cell else default_cell
-    params["cell"] = _chosen(cell, "DSM resolution" if not config.cell else "config")
-    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    if config.cell:
+        cell, why = units.length(config.cell), "config"
+    else:
+        cell = max(default_cell, units.length(1.0))
+        why = "1 m, or the DSM cell when coarser: finer minimum surfaces only add noise"
+    params["cell"] = _chosen(cell, why)
+    lo, hi = bounds if bounds is not None else (xyz.min(axis=0), xyz.max(axis=0))
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
     zmin = grid_points(xyz, transform, shape, reducer="min")
     if not np.isfinite(zmin).any():
@@ -101,7 +110,7 @@ def smrf(xyz: np.ndarray, config: GroundConfig, units: Units, default_cell: floa
 
     objects = _progressive_opening(surface, cell, window, slope * units.horizontal / units.vertical)
     objects |= ~np.isfinite(zmin)
-    terrain = _interpolate_cells(surface, ~objects, transform)
+    terrain = fill_gaps(surface, ~objects)
     gy, gx = np.gradient(terrain, cell)
     gradient = np.hypot(gx, gy)
 
@@ -126,7 +135,7 @@ def _chosen(value, reason: str) -> dict:
 def _drop_low_outliers(zmin: np.ndarray, units: Units) -> np.ndarray:
     """NaN out cells far below their neighbourhood (multipath, reflections under water)."""
     filled = _fill_nearest(zmin)
-    median = ndimage.median_filter(filled, size=5, mode="nearest")
+    median = cv2.medianBlur(filled.astype(np.float32), 5)
     low = zmin < median - units.height(2.0)
     if low.any():
         log.info("smrf: %d low-outlier cells ignored", int(low.sum()))
@@ -184,15 +193,3 @@ def _progressive_opening(surface: np.ndarray, cell: float, window: float, slope:
         objects |= (current - opened) > slope * r * cell
         current = opened
     return objects
-
-
-def _interpolate_cells(surface: np.ndarray, keep: np.ndarray, transform) -> np.ndarray:
-    """Linear (Delaunay) interpolation of the kept cells over the whole grid."""
-    rows, cols = np.nonzero(keep)
-    if len(rows) < 3:
-        return np.full(surface.shape, np.nanmedian(surface[keep]) if keep.any() else np.nanmin(surface))
-    values = surface[rows, cols]
-    interp = interpolate.LinearNDInterpolator(np.column_stack([rows, cols]), values)
-    rr, cc = np.mgrid[0 : surface.shape[0], 0 : surface.shape[1]]
-    out = interp(rr, cc)
-    return _fill_nearest(out)
