@@ -56,8 +56,9 @@ class GroundConfig:
 
     Attributes
     ----------
-    method : {"smrf", "provider"}
-        "smrf" filters the points; "provider" trusts the input's class 2.
+    method : {"auto", "smrf", "tophat", "drape", "provider"}
+        "auto" picks "smrf" for LiDAR and "tophat" for clouds without return numbers
+        (stereo); "provider" trusts the input's class 2. See ``recon3d.terrain.ground``.
     cell : float or None
         Cell of the minimum surface in metres; None uses 1 m, or the DSM cell if coarser.
     max_window : float or None
@@ -65,22 +66,24 @@ class GroundConfig:
         blob seen in the data (bounded to 10..60 m).
     slope : float or None
         Terrain slope (rise over run) the filter tolerates; None measures it.
-    threshold : float
-        Height above the provisional terrain (m) below which a point is ground.
+    threshold : float or None
+        Height above the provisional terrain (m) below which a point is ground; None
+        uses 0.5 m, or three times the measured noise when that is larger.
     scalar : float
         Extra tolerance per unit of local slope times cell size (SMRF's "scalar").
     """
 
-    method: str = "smrf"
+    method: str = "auto"
     cell: float | None = None
     max_window: float | None = None
     slope: float | None = None
-    threshold: float = 0.5
+    threshold: float | None = None
     scalar: float = 1.25
 
     def __post_init__(self) -> None:
-        if self.method not in ("smrf", "provider"):
-            raise InputError(f"ground.method must be 'smrf' or 'provider', not {self.method!r}")
+        methods = ("auto", "smrf", "tophat", "drape", "provider")
+        if self.method not in methods:
+            raise InputError(f"ground.method must be one of {', '.join(methods)}; not {self.method!r}")
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,7 @@ class RunState:
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
     is_ground: np.ndarray | None = None
+    dtm_points: np.ndarray | None = None
     city: CityModel | None = None
     labels: np.ndarray | None = None
     auto: dict[str, Any] = field(default_factory=dict)
@@ -184,13 +185,15 @@ def make_dsm(s: RunState) -> None:
 def classify_ground(s: RunState) -> None:
     result = ground_stage.classify_ground(s.cloud, s.config.ground, s.units, s.dsm.resolution)
     s.is_ground = result.is_ground
+    s.dtm_points = result.for_dtm
     s.auto["ground"] = result.params
     if s.reference_classes is not None:
         s.report["ground_filter"] = evaluate.ground_filter_errors(s.is_ground, s.reference_classes)
 
 
 def make_dtm(s: RunState) -> None:
-    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.is_ground], s.dsm)
+    noise = s.auto["ground"].get("noise", {}).get("value", 0.0) / s.units.vertical
+    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.dtm_points], s.dsm, noise=noise)
     s.ndsm = dtm_stage.make_ndsm(s.dsm, s.dtm)
 
 

@@ -80,7 +80,7 @@ def _fill_small_gaps(out: np.ndarray, gaps: np.ndarray, max_cells: int = 4):
     return out, gaps & ~small
 
 
-def make_dtm(ground_xyz: np.ndarray, grid: Raster) -> Raster:
+def make_dtm(ground_xyz: np.ndarray, grid: Raster, *, noise: float = 0.0) -> Raster:
     """Interpolate ground points on the grid of ``grid``.
 
     The ground points are averaged per cell, which removes measurement noise and
@@ -93,6 +93,9 @@ def make_dtm(ground_xyz: np.ndarray, grid: Raster) -> Raster:
     ground_xyz : (n, 3) float
     grid : Raster
         Any raster on the target grid (the DSM); only its transform and CRS are used.
+    noise : float
+        Height noise of the points (CRS units), as measured by the ground filter;
+        noisy clouds (stereo) are averaged over a wider window (see ``_smooth_noise``).
 
     Raises
     ------
@@ -105,8 +108,34 @@ def make_dtm(ground_xyz: np.ndarray, grid: Raster) -> Raster:
             "(is the input a rooftop-only crop?)"
         )
     mean = grid_points(ground_xyz, grid.transform, grid.shape, reducer="mean")
-    dtm = fill_gaps(mean, np.isfinite(mean))
+    known = np.isfinite(mean)
+    if noise > 0:
+        mean = _smooth_noise(mean, known, grid_points(ground_xyz, grid.transform, grid.shape, reducer="count"), noise)
+    dtm = fill_gaps(mean, known)
     return grid.like(dtm, product="DTM", method="per-cell mean of ground points, gaps by Delaunay interpolation")
+
+
+#: Height noise (CRS units, metres for metric CRSs) a DTM cell is averaged down to.
+NOISE_TARGET = 0.05
+
+
+def _smooth_noise(mean: np.ndarray, known: np.ndarray, count: np.ndarray, noise: float) -> np.ndarray:
+    """Average per-cell means over a window that brings the noise down to 5 cm.
+
+    A mean of m points with noise s has noise s / sqrt(m); a square window of w cells
+    holding n points each needs w^2 n >= (s / 0.05)^2. A 0.3 m stereo noise with one
+    point per cell gives w = 6; LiDAR (a few cm, several points per cell) gives w = 1.
+    """
+    n = float(np.median(count[known])) if known.any() else 1.0
+    width = int(np.ceil(np.sqrt((noise / NOISE_TARGET) ** 2 / max(n, 1.0))))
+    if width <= 1:
+        return mean
+    weights = np.where(known, count, 0.0)
+    num = ndimage.uniform_filter(np.where(known, mean, 0.0) * weights, width, mode="nearest")
+    den = ndimage.uniform_filter(weights, width, mode="nearest")
+    out = mean.copy()
+    out[known] = num[known] / den[known]
+    return out
 
 
 def make_ndsm(dsm: Raster, dtm: Raster) -> Raster:
