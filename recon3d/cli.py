@@ -51,11 +51,13 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--crs", help="CRS of an input without one, e.g. EPSG:7415.")
 @click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
 @click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV of reference points: x,y,z[,id][,kind].")
+@click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
+@click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, config_path, overwrite, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, altimetry, config_path, overwrite, overrides):
     """Reconstruct INPUT (a LAS/LAZ or PLY point cloud) into the products of OUT.
 
     OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
@@ -84,12 +86,60 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, config_path, ove
             crs=user_crs,
             footprints=footprints,
             checkpoints=checkpoints,
+            breaklines=breaklines,
+            altimetry=altimetry,
             config=config,
             overwrite=overwrite,
             progress=progress,
         )
     if not ctx.obj["quiet"]:
         _print_summary(state)
+
+
+@cli.group()
+def evaluate():
+    """Measure products against references (ISPRS definitions)."""
+
+
+@evaluate.command("ground")
+@click.argument("cloud_path", metavar="CLOUD", type=click.Path(path_type=Path))
+@click.option("--reference", required=True, type=click.Path(path_type=Path), help="The same cloud classified by its provider (class 2 ground).")
+@click.option("--crs", help="CRS for files without one, e.g. EPSG:7415.")
+@click.option("--dtm", "dtm_path", type=click.Path(path_type=Path), help="DTM to check; default: dtm.tif beside CLOUD, if there.")
+@click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV x,y,z[,id][,kind] to check the DTM against.")
+@click.option("--json", "json_path", type=click.Path(path_type=Path), help="Also write the numbers as JSON.")
+def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path):
+    """Type I, Type II, total error and kappa of the ground in CLOUD, and the DTM's RMS.
+
+    Points the provider labelled ground (2) are scored against vegetation and
+    building (3, 4, 5, 6); unclassified points are left out, as in the ISPRS filter test.
+
+    \b
+    Examples
+    --------
+      recon3d evaluate ground out/cloud.laz --reference delft.laz --crs EPSG:7415
+    """
+    import json
+
+    from recon3d.core.geo import crs_units, parse_crs
+    from recon3d.io.checkpoints import read_checkpoints
+    from recon3d.io.geotiff import read_raster
+    from recon3d.io.las import read_las
+    from recon3d.quality.evaluate import evaluate_ground as run_evaluation
+
+    user_crs = parse_crs(crs) if crs else None
+    ref = read_las(reference, crs=user_crs)
+    classified = read_las(cloud_path, crs=user_crs or ref.crs)
+    dtm_path = dtm_path or (cloud_path.parent / "dtm.tif" if (cloud_path.parent / "dtm.tif").exists() else None)
+    dtm = read_raster(dtm_path) if dtm_path else None
+    points = read_checkpoints(checkpoints) if checkpoints else None
+    result = run_evaluation(classified, ref, crs_units(ref.crs, source=str(reference)), dtm=dtm, checkpoints=points)
+    p = result["points"]
+    click.echo(f"points scored {p['n']}: Type I {p['type_i_percent']:.2f} %  Type II {p['type_ii_percent']:.2f} %  "
+               f"total {p['total_percent']:.2f} %  kappa {p['kappa']:.4f}")
+    _echo_accuracy(result["accuracy"])
+    if json_path:
+        json_path.write_text(json.dumps(result, indent=2), encoding="utf-8")
 
 
 class _StageProgress:
@@ -120,7 +170,11 @@ class _StageProgress:
 
 def _print_summary(state) -> None:
     click.echo(f"wrote {state.out_dir}  ({len(state.city)} buildings, {sum(state.timings.values()):.1f} s)")
-    rows = state.report.get("accuracy", [])
+    _echo_accuracy(state.report.get("accuracy", []))
+
+
+def _echo_accuracy(rows: list[dict]) -> None:
+    """The accuracy table (metres, percentages) on stdout."""
     if rows:
         click.echo(f"{'product':<11}{'reference':<32}{'n':>8}{'mean':>8}{'std':>7}{'RMS':>7}{'max':>7}{'NMAD':>7}{'<=1m%':>7}{'<=2m%':>7}")
         for r in rows:

@@ -18,7 +18,7 @@ from recon3d.io import atomic_path, require_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Footprint", "read_footprints", "write_features"]
+__all__ = ["Footprint", "read_footprints", "read_terrain_vectors", "write_features"]
 
 
 @dataclass
@@ -89,6 +89,48 @@ def read_footprints(
     if not footprints:
         raise InputError(f"{path}: no polygon with an area in the file")
     return footprints, notes
+
+
+def read_terrain_vectors(path: str | Path, *, crs: pyproj.CRS) -> tuple[list[np.ndarray], np.ndarray]:
+    """Read 3-D breaklines and spot heights (survey altimetry) from a vector file.
+
+    Returns
+    -------
+    lines : list of (k, 3) float arrays
+        Vertices of every (multi)line, x and y in ``crs``.
+    points : (m, 3) float
+        Every point feature.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, or features without Z values (a breakline needs heights).
+    CRSError
+        The file has no CRS.
+    """
+    path = require_file(path, "terrain vectors")
+    try:
+        meta, _, wkb, _ = pyogrio.raw.read(path)
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read vector file ({exc})") from None
+    if meta.get("crs") is None:
+        raise CRSError(f"{path}: the file has no CRS")
+    geoms = shapely.from_wkb(wkb)
+    if not shapely.has_z(geoms).all():
+        raise InputError(f"{path}: every breakline and point needs Z values (heights)")
+    src = pyproj.CRS.from_user_input(meta["crs"])
+    if not _same_horizontal(src, crs):
+        t = pyproj.Transformer.from_crs(_horizontal(src), _horizontal(crs), always_xy=True)
+        geoms = shapely.transform(
+            geoms, lambda xyz: np.column_stack([*t.transform(xyz[:, 0], xyz[:, 1]), xyz[:, 2]]), include_z=True
+        )
+    parts = shapely.get_parts(geoms)
+    kinds = shapely.get_type_id(parts)
+    lines = [shapely.get_coordinates(g, include_z=True) for g in parts[np.isin(kinds, (1, 2))]]
+    points = shapely.get_coordinates(parts[kinds == 0], include_z=True).reshape(-1, 3)
+    if not lines and not len(points):
+        raise InputError(f"{path}: no line or point features")
+    return lines, points
 
 
 def write_features(

@@ -59,6 +59,9 @@ class RunState:
     crs: pyproj.CRS | None = None
     footprints_path: Path | None = None
     checkpoints_path: Path | None = None
+    breaklines_path: Path | None = None
+    altimetry_path: Path | None = None
+    constraints: np.ndarray | None = None
     cloud: PointCloud | None = None
     units: Units | None = None
     footprints: list[vectors.Footprint] | None = None
@@ -85,6 +88,8 @@ def run(
     crs: pyproj.CRS | None = None,
     footprints: str | Path | None = None,
     checkpoints: str | Path | None = None,
+    breaklines: str | Path | None = None,
+    altimetry: str | Path | None = None,
     config: PipelineConfig | None = None,
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
@@ -101,6 +106,9 @@ def run(
         CRS of an input that carries none.
     footprints, checkpoints : path-like, optional
         Building outlines to use instead of detection; reference heights to check against.
+    breaklines, altimetry : path-like, optional
+        3-D lines (roads, water edges) and spot heights (vector file, or CSV x,y,z for
+        altimetry) the DTM must honour.
     config : PipelineConfig, optional
     overwrite : bool
         Replace an existing, non-empty ``out_dir``.
@@ -125,6 +133,8 @@ def run(
         crs=crs,
         footprints_path=Path(footprints) if footprints else None,
         checkpoints_path=Path(checkpoints) if checkpoints else None,
+        breaklines_path=Path(breaklines) if breaklines else None,
+        altimetry_path=Path(altimetry) if altimetry else None,
     )
     try:
         for index, (name, stage) in enumerate(STAGES):
@@ -166,6 +176,7 @@ def read_inputs(s: RunState) -> None:
         _check_overlap(s)
     if s.checkpoints_path:
         s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
+    s.constraints = _read_constraints(s)
     s.work_dir.mkdir(parents=True)
 
 
@@ -193,7 +204,11 @@ def classify_ground(s: RunState) -> None:
 
 def make_dtm(s: RunState) -> None:
     noise = s.auto["ground"].get("noise", {}).get("value", 0.0) / s.units.vertical
-    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.dtm_points], s.dsm, noise=noise)
+    constraints = None
+    if s.constraints is not None:
+        lines, points = s.constraints
+        constraints = np.concatenate([dtm_stage.densify_lines(lines, s.dsm.resolution / 2), points])
+    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.dtm_points], s.dsm, noise=noise, constraints=constraints)
     s.ndsm = dtm_stage.make_ndsm(s.dsm, s.dtm)
 
 
@@ -328,6 +343,25 @@ def _check_overlap(s: RunState) -> None:
         )
 
 
+def _read_constraints(s: RunState) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """Breaklines and spot heights for the DTM, or None when neither was given."""
+    lines, points = [], np.zeros((0, 3))
+    if s.breaklines_path:
+        lines, more = vectors.read_terrain_vectors(s.breaklines_path, crs=s.cloud.crs)
+        points = np.concatenate([points, more])
+    if s.altimetry_path:
+        if s.altimetry_path.suffix.lower() == ".csv":
+            more = checkpoints_io.read_checkpoints(s.altimetry_path).xyz
+        else:
+            more_lines, more = vectors.read_terrain_vectors(s.altimetry_path, crs=s.cloud.crs)
+            lines += more_lines
+        points = np.concatenate([points, more])
+    if not lines and not len(points):
+        return None
+    s.notes.append(f"DTM honours {len(lines)} breaklines and {len(points)} spot heights")
+    return lines, points
+
+
 def _classified_cloud(s: RunState) -> PointCloud:
     """The input cloud with recon3d's classes: ground 2, building 6, other 1."""
     classes = np.full(len(s.cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -376,6 +410,8 @@ def _run_record(s: RunState) -> dict:
             "provider_classes": s.reference_classes is not None,
             "footprints": str(s.footprints_path) if s.footprints_path else None,
             "checkpoints": str(s.checkpoints_path) if s.checkpoints_path else None,
+            "breaklines": str(s.breaklines_path) if s.breaklines_path else None,
+            "altimetry": str(s.altimetry_path) if s.altimetry_path else None,
         },
         "config": s.config.to_dict(),
         "chosen": s.auto,

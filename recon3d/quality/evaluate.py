@@ -10,7 +10,13 @@ from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
 from recon3d.io.checkpoints import CheckPoints
 
-__all__ = ["against_checkpoints", "against_points", "building_coverage", "ground_filter_errors"]
+__all__ = [
+    "against_checkpoints",
+    "against_points",
+    "building_coverage",
+    "evaluate_ground",
+    "ground_filter_errors",
+]
 
 
 def against_points(
@@ -95,3 +101,80 @@ def building_coverage(cloud: PointCloud, reference_classes: np.ndarray, labels: 
         "completeness_percent": 100.0 * float(np.mean(inside[ref_building])) if ref_building.any() else None,
         "correctness_percent": 100.0 * float(np.mean(ref_building[above])) if above.any() else None,
     }
+
+
+def evaluate_ground(
+    classified: PointCloud,
+    reference: PointCloud,
+    units: Units,
+    *,
+    dtm: Raster | None = None,
+    checkpoints: CheckPoints | None = None,
+) -> dict:
+    """Ground filter and DTM of a run against a provider-classified reference cloud.
+
+    Parameters
+    ----------
+    classified : PointCloud
+        recon3d's output cloud (class 2 = ground).
+    reference : PointCloud
+        The same points classified by the provider.
+    units : Units
+    dtm : Raster, optional
+        recon3d's DTM; compared with a DTM interpolated the same way from the
+        provider's ground points, over the cells that hold reference points.
+    checkpoints : CheckPoints, optional
+        Compared with the DTM (ground and unlabelled points).
+
+    Returns
+    -------
+    dict
+        ``{"points": ground_filter_errors(...), "accuracy": [AccuracyReport dicts]}``.
+
+    Raises
+    ------
+    InputError
+        When the two clouds are not the same points.
+    """
+    from recon3d.errors import InputError
+    from recon3d.terrain.dsm import grid_points
+    from recon3d.terrain.dtm import make_dtm
+
+    if reference.classification is None:
+        raise InputError("the reference cloud carries no classification")
+    order = _match_points(classified.xyz, reference.xyz, tolerance=units.length(0.01))
+    if order is None:
+        raise InputError("the classified and reference clouds are not the same points")
+    is_ground = classified.classification[order] == ASPRS.GROUND
+    out = {"points": ground_filter_errors(is_ground, reference.classification), "accuracy": []}
+    if dtm is not None:
+        ref_ground = reference.xyz[reference.classification == ASPRS.GROUND]
+        ref_dtm = make_dtm(ref_ground, dtm)
+        covered = grid_points(reference.xyz, dtm.transform, dtm.shape, reducer="count") > 0
+        out["accuracy"].append(
+            AccuracyReport.from_errors(
+                (dtm.data - ref_dtm.data)[covered],
+                product="DTM",
+                reference="DTM from provider ground points",
+                metres_per_unit=units.vertical,
+            ).to_dict()
+        )
+        out["accuracy"].append(
+            against_points(dtm, ref_ground, product="DTM", reference="provider ground points", units=units).to_dict()
+        )
+    if checkpoints is not None and dtm is not None:
+        sel = checkpoints.kinds != "roof"
+        out["accuracy"].append(
+            against_points(dtm, checkpoints.xyz[sel], product="DTM", reference="check points", units=units).to_dict()
+        )
+    return out
+
+
+def _match_points(a: np.ndarray, b: np.ndarray, *, tolerance: float) -> np.ndarray | None:
+    """Index into ``a`` of the point matching each point of ``b``, or None if some have no match."""
+    if len(a) == len(b) and np.abs(a - b).max() <= tolerance:
+        return np.arange(len(b))
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(a).query(b, distance_upper_bound=tolerance)
+    return idx if np.isfinite(dist).all() else None

@@ -80,7 +80,32 @@ def _fill_small_gaps(out: np.ndarray, gaps: np.ndarray, max_cells: int = 4):
     return out, gaps & ~small
 
 
-def make_dtm(ground_xyz: np.ndarray, grid: Raster, *, noise: float = 0.0) -> Raster:
+def densify_lines(lines: list[np.ndarray], step: float) -> np.ndarray:
+    """Points every ``step`` (or closer) along 3-D polylines, heights linear along each segment.
+
+    Parameters
+    ----------
+    lines : list of (k, 3) float
+    step : float
+
+    Returns
+    -------
+    (m, 3) float
+    """
+    out = []
+    for line in lines:
+        a, b = line[:-1], line[1:]
+        length = np.hypot(*(b - a)[:, :2].T)
+        counts = np.maximum(np.ceil(length / step).astype(np.int64), 1)
+        seg = np.repeat(np.arange(len(a)), counts)
+        t = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)) / counts[seg]
+        out += [a[seg] + (b[seg] - a[seg]) * t[:, None], line[-1:]]
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def make_dtm(
+    ground_xyz: np.ndarray, grid: Raster, *, noise: float = 0.0, constraints: np.ndarray | None = None
+) -> Raster:
     """Interpolate ground points on the grid of ``grid``.
 
     The ground points are averaged per cell, which removes measurement noise and
@@ -96,6 +121,11 @@ def make_dtm(ground_xyz: np.ndarray, grid: Raster, *, noise: float = 0.0) -> Ras
     noise : float
         Height noise of the points (CRS units), as measured by the ground filter;
         noisy clouds (stereo) are averaged over a wider window (see ``_smooth_noise``).
+    constraints : (m, 3) float, optional
+        Heights the surface must honour: breakline vertices (densified with
+        :func:`densify_lines`) and spot heights. Each cell they fall in takes their
+        mean height instead of the ground points', and the interpolation of the gaps
+        around them uses them as vertices, as in photogrammetric DTM production.
 
     Raises
     ------
@@ -111,6 +141,10 @@ def make_dtm(ground_xyz: np.ndarray, grid: Raster, *, noise: float = 0.0) -> Ras
     known = np.isfinite(mean)
     if noise > 0:
         mean = _smooth_noise(mean, known, grid_points(ground_xyz, grid.transform, grid.shape, reducer="count"), noise)
+    if constraints is not None and len(constraints):
+        fixed = grid_points(constraints, grid.transform, grid.shape, reducer="mean")
+        has = np.isfinite(fixed)
+        mean[has], known = fixed[has], known | has
     dtm = fill_gaps(mean, known)
     return grid.like(dtm, product="DTM", method="per-cell mean of ground points, gaps by Delaunay interpolation")
 

@@ -94,6 +94,10 @@ class MinimumSurface:
         Terrain slope tolerated, rise over run (dimensionless, metric).
     noise : float
         Height noise of the surface, CRS height units (NMAD of second differences).
+    trend : (rows, cols) float
+        Large-scale terrain shape (opening with the largest window, smoothed). The
+        methods filter ``raster - trend``, so that a steep hillside is as flat to them as
+        a plain and the slope tolerance only has to cover the terrain's local relief.
     """
 
     raster: Raster
@@ -101,6 +105,7 @@ class MinimumSurface:
     window: float
     slope: float
     noise: float
+    trend: np.ndarray
 
     @property
     def cell(self) -> float:
@@ -108,7 +113,12 @@ class MinimumSurface:
 
     @property
     def data(self) -> np.ndarray:
-        return self.raster.data.astype(np.float64)
+        """(rows, cols) the surface minus its trend."""
+        return self.raster.data.astype(np.float64) - self.trend
+
+    def terrain(self, residual: np.ndarray, objects: np.ndarray) -> Raster:
+        """Terrain raster: residual cells that are not objects, gaps interpolated, trend added back."""
+        return self.raster.like(fill_gaps(residual, ~objects & self.measured) + self.trend)
 
 
 def classify_ground(cloud: PointCloud, config: GroundConfig, units: Units, cell: float) -> GroundResult:
@@ -189,15 +199,21 @@ def minimum_surface(
     else:
         window, why = _auto_window(surface, cell, units)
         params["max_window"] = _chosen(round(window * units.horizontal, 1), why)
+    trend = _trend(surface, cell, window)
     if config.slope is not None:
         slope = config.slope
         params["slope"] = _chosen(slope, "config")
     else:
-        slope, why = _auto_slope(surface, cell, window, units)
+        slope, why = _auto_slope(surface - trend, cell, window, units)
         params["slope"] = _chosen(round(slope, 3), why)
+    gy, gx = np.gradient(trend, cell)
+    params["terrain_trend_slope"] = _chosen(
+        round(float(np.percentile(np.hypot(gx, gy), 90)) * units.vertical / units.horizontal, 3),
+        "90th percentile gradient of the large-scale terrain, removed before filtering",
+    )
     noise = _noise(surface, measured)
     params["noise"] = _chosen(round(noise * units.vertical, 3), "NMAD of the minimum surface's second differences")
-    return MinimumSurface(Raster(surface, transform), measured, window, slope, noise)
+    return MinimumSurface(Raster(surface, transform), measured, window, slope, noise, trend)
 
 
 # --------------------------------------------------------------------------- methods
@@ -213,7 +229,7 @@ def smrf_terrain(s: MinimumSurface, units: Units) -> Raster:
         opened = _open(current, r)
         objects |= (current - opened) > slope * r * s.cell + 2.0 * s.noise
         current = opened
-    return s.raster.like(fill_gaps(s.data, ~objects & s.measured))
+    return s.terrain(s.data, objects)
 
 
 def tophat_terrain(s: MinimumSurface, units: Units) -> Raster:
@@ -231,7 +247,7 @@ def tophat_terrain(s: MinimumSurface, units: Units) -> Raster:
     gy, gx = np.gradient(z, s.cell)
     steep = np.hypot(gx, gy) > 3.0 * slope + 2.0 * s.noise / s.cell
     objects = high | above | ndimage.binary_dilation(steep & (tophat > 3.0 * s.noise))
-    return s.raster.like(fill_gaps(z, ~objects & s.measured))
+    return s.terrain(z, objects)
 
 
 RISE = 2.0
@@ -266,7 +282,7 @@ def drape_terrain(s: MinimumSurface, units: Units) -> Raster:
         for _ in range(steps):
             cloth = np.minimum(cv2.blur(cloth, (3, 3), borderType=cv2.BORDER_REPLICATE) + rise / steps, target)
     objects = (z - cloth) > units.height(0.5) + 3.0 * s.noise
-    return s.raster.like(fill_gaps(z, ~objects & s.measured))
+    return s.terrain(z, objects)
 
 
 #: Ground filters by name; each maps a minimum surface to a provisional terrain.
@@ -369,13 +385,28 @@ def _auto_window(surface: np.ndarray, cell: float, units: Units) -> tuple[float,
     return units.length(window_m), f"widest raised object {width_m:.1f} m across (bounded to 10-60 m)"
 
 
-def _auto_slope(surface: np.ndarray, cell: float, window: float, units: Units) -> tuple[float, str]:
-    """Terrain slope tolerance: the 90th percentile gradient of the opened surface."""
+def _trend(surface: np.ndarray, cell: float, window: float) -> np.ndarray:
+    """Large-scale terrain: a plane, plus the opening of the rest with the largest window, smoothed.
+
+    The plane is fitted to the opened surface first, because openings near the border
+    of a tilted tile see the replicated edge as a plateau.
+    """
     k = max(1, round(window / cell / 2))
+    rows, cols = np.indices(surface.shape, dtype=np.float64)
     opened = _open(surface, k).astype(np.float64)
-    smooth = ndimage.uniform_filter(opened, size=2 * k + 1, mode="nearest")
+    design = np.column_stack([rows.ravel(), cols.ravel(), np.ones(surface.size)])
+    coef = np.linalg.lstsq(design, opened.ravel(), rcond=None)[0]
+    plane = (design @ coef).reshape(surface.shape)
+    rest = _open(surface - plane, k).astype(np.float64)
+    return plane + ndimage.uniform_filter(rest, size=k + 1, mode="nearest")
+
+
+def _auto_slope(residual: np.ndarray, cell: float, window: float, units: Units) -> tuple[float, str]:
+    """Slope tolerance: the 90th percentile gradient of the opened, detrended terrain."""
+    k = max(1, round(window / cell / 2))
+    smooth = ndimage.uniform_filter(_open(residual, k).astype(np.float64), size=3, mode="nearest")
     gy, gx = np.gradient(smooth, cell)
     g = np.hypot(gx, gy) * units.vertical / units.horizontal
     p90 = float(np.percentile(g, 90))
     slope = float(np.clip(p90 * 1.5, 0.15, 1.0))
-    return slope, f"90th percentile terrain gradient {p90:.3f} x 1.5, bounded to 0.15-1.0"
+    return slope, f"90th percentile gradient of the detrended terrain {p90:.3f} x 1.5, bounded to 0.15-1.0"
