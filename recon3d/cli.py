@@ -139,7 +139,10 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
                f"total {p['total_percent']:.2f} %  kappa {p['kappa']:.4f}")
     _echo_accuracy(result["accuracy"])
     if json_path:
-        json_path.write_text(json.dumps(result, indent=2), encoding="utf-8")
+        from recon3d.io import atomic_path
+
+        with atomic_path(json_path) as tmp:
+            tmp.write_text(json.dumps(result, indent=2), encoding="utf-8")
 
 
 class _StageProgress:
