@@ -30,7 +30,27 @@ __all__ = [
     "GroundConfig",
     "LodConfig",
     "PipelineConfig",
+    "StereoConfig",
 ]
+
+
+@dataclass(frozen=True)
+class StereoConfig:
+    """Dense matching of frame stereo pairs.
+
+    Attributes
+    ----------
+    max_disparities : int
+        Widest disparity search per pair; the range itself comes from the sparse points.
+    min_angle : float
+        Smallest ray intersection angle (degrees) for a triangulated point.
+    max_parallax : float
+        Largest residual vertical parallax (px) accepted after rectification.
+    """
+
+    max_disparities: int = 256
+    min_angle: float = 1.0
+    max_parallax: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -126,6 +146,7 @@ class LodConfig:
 class PipelineConfig:
     """The whole configuration of ``recon3d run``."""
 
+    stereo: StereoConfig = field(default_factory=StereoConfig)
     dsm: DsmConfig = field(default_factory=DsmConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
     dtm: DtmConfig = field(default_factory=DtmConfig)

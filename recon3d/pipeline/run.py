@@ -62,6 +62,7 @@ class RunState:
     breaklines_path: Path | None = None
     altimetry_path: Path | None = None
     constraints: np.ndarray | None = None
+    scene: Any = None
     cloud: PointCloud | None = None
     units: Units | None = None
     footprints: list[vectors.Footprint] | None = None
@@ -155,18 +156,45 @@ def run(
 
 
 def read_inputs(s: RunState) -> None:
-    """Read and check every input before anything is computed."""
+    """Read and check every input before anything is computed.
+
+    A point cloud is read whole; a stereo scene folder has its model and images
+    checked here and is matched by the next stage.
+    """
+    from recon3d.io.colmap import is_scene_folder, read_scene
+
     suffix = s.input_path.suffix.lower()
-    if suffix in (".las", ".laz"):
+    if is_scene_folder(s.input_path):
+        s.scene = read_scene(s.input_path, crs=s.crs)
+        s.units = crs_units(s.scene.crs, source=str(s.input_path))
+    elif suffix in (".las", ".laz"):
         s.cloud = read_las(s.input_path, crs=s.crs)
     elif suffix == ".ply":
         from recon3d.io.ply import read_ply
 
         s.cloud = read_ply(s.input_path, crs=s.crs)
     elif not s.input_path.exists():
-        raise InputError(f"{s.input_path}: input file not found")
+        raise InputError(f"{s.input_path}: input not found")
     else:
-        raise InputError(f"{s.input_path}: unsupported input (expected .las, .laz or .ply)")
+        raise InputError(
+            f"{s.input_path}: unsupported input (expected .las, .laz, .ply or a folder with images/ and sparse/)"
+        )
+    if s.cloud is not None:
+        _read_side_inputs(s)
+
+
+def match_stereo(s: RunState) -> None:
+    """Dense matching of a scene folder into the point cloud (nothing to do for clouds)."""
+    if s.scene is None:
+        return
+    from recon3d.pipeline.stereo import dense_cloud
+
+    s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo)
+    _read_side_inputs(s)
+
+
+def _read_side_inputs(s: RunState) -> None:
+    """Footprints, check points and terrain constraints, once the cloud and its CRS exist."""
     s.units = crs_units(s.cloud.crs, source=str(s.input_path))
     if s.cloud.has_classes():
         s.reference_classes = s.cloud.classification.copy()
@@ -177,7 +205,7 @@ def read_inputs(s: RunState) -> None:
     if s.checkpoints_path:
         s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
     s.constraints = _read_constraints(s)
-    s.work_dir.mkdir(parents=True)
+    s.work_dir.mkdir(parents=True, exist_ok=True)
 
 
 def make_dsm(s: RunState) -> None:
@@ -316,6 +344,7 @@ def write_products(s: RunState) -> None:
 
 STAGES: list[tuple[str, Callable[[RunState], None]]] = [
     ("read", read_inputs),
+    ("stereo", match_stereo),
     ("dsm", make_dsm),
     ("ground", classify_ground),
     ("dtm", make_dtm),
@@ -402,7 +431,8 @@ def _run_record(s: RunState) -> dict:
     return {
         "recon3d": __version__,
         "inputs": {
-            "point_cloud": str(s.input_path),
+            "input": str(s.input_path),
+            "kind": "stereo scene" if s.scene is not None else "point cloud",
             "points": len(s.cloud),
             "crs": crs_name(s.cloud.crs),
             "units": {"horizontal": s.units.name, "metres_per_unit": s.units.horizontal,

@@ -1,0 +1,53 @@
+"""From a disparity map to 3-D points in model coordinates, with a quality per point."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from recon3d.core.pointcloud import PointCloud
+from recon3d.stereo.rectify import RectifiedPair
+
+__all__ = ["triangulate"]
+
+
+def triangulate(pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarray, *, min_angle_deg: float = 1.0) -> PointCloud:
+    """Intersect the rays of every valid disparity.
+
+    Parameters
+    ----------
+    pair : RectifiedPair
+    disparity : (H, W) float
+        Left-image disparity, NaN where invalid.
+    confidence : (H, W) float
+        Matching confidence in [0, 1].
+    min_angle_deg : float
+        Rays meeting at a smaller angle are dropped (depth too uncertain).
+
+    Returns
+    -------
+    PointCloud
+        xyz in model coordinates (no CRS yet); attributes ``red``, ``green``,
+        ``blue`` (uint16), ``quality`` (confidence scaled by the intersection angle's
+        depth precision, in [0, 1]) and ``intersection_angle`` (degrees).
+    """
+    valid = np.isfinite(disparity) & pair.valid_left
+    d = np.where(valid, disparity, 0).astype(np.float32)
+    rect = cv2.reprojectImageTo3D(d, pair.Q)[valid].astype(np.float64)
+    cam = rect @ pair.R1  # R1 maps camera to rectified frame: its transpose maps back
+    xyz = (cam - pair.camera_left.t) @ pair.camera_left.R
+    ca, cb = pair.camera_left.center, pair.camera_right.center
+    ra, rb = xyz - ca, xyz - cb
+    cos = np.einsum("ij,ij->i", ra, rb) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    keep = np.isfinite(xyz).all(axis=1) & (angle >= min_angle_deg)
+    rgb = pair.color[valid][keep].astype(np.uint16) * 257
+    quality = confidence[valid][keep] * np.sin(np.radians(np.minimum(angle[keep], 90.0)))
+    attributes = {
+        "red": rgb[:, 0],
+        "green": rgb[:, 1],
+        "blue": rgb[:, 2],
+        "quality": quality.astype(np.float32),
+        "intersection_angle": angle[keep].astype(np.float32),
+    }
+    return PointCloud(xyz[keep], attributes)
