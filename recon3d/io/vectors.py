@@ -53,26 +53,8 @@ def read_footprints(
         The file has no CRS.
     """
     path = require_file(path, "footprints")
-    try:
-        meta, _, wkb, fields = pyogrio.raw.read(path)
-    except Exception as exc:
-        raise InputError(f"{path}: cannot read vector file ({exc})") from None
-    if meta.get("crs") is None:
-        raise CRSError(f"{path}: the footprints have no CRS (add a .prj or a crs member)")
-    src_crs = pyproj.CRS.from_user_input(meta["crs"])
-    geoms = shapely.from_wkb(wkb)
+    meta, geoms, fields = _read_layer(path, crs)
     geoms = shapely.force_2d(geoms)
-    if src_crs.is_geographic:
-        lo = shapely.bounds(geoms)
-        if np.nanmax(np.abs(lo[:, [0, 2]])) > 180 or np.nanmax(np.abs(lo[:, [1, 3]])) > 90:
-            raise CRSError(
-                f"{path}: the file's CRS is {crs_name(src_crs)} (longitude/latitude; GeoJSON without "
-                "a crs member means WGS84) but its coordinates are projected; write the CRS into the file"
-            )
-    if not _same_horizontal(src_crs, crs):
-        log.info("reprojecting %s from %s to %s", path.name, crs_name(src_crs), crs_name(crs))
-        t = pyproj.Transformer.from_crs(_horizontal(src_crs), _horizontal(crs), always_xy=True)
-        geoms = shapely.transform(geoms, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
     names = list(meta["fields"])
     id_field = id_field or next((n for n in names if n.lower() in ("id", "identifiant", "fid", "gml_id", "identificatie")), None)
     footprints, notes = [], []
@@ -109,21 +91,9 @@ def read_terrain_vectors(path: str | Path, *, crs: pyproj.CRS) -> tuple[list[np.
         The file has no CRS.
     """
     path = require_file(path, "terrain vectors")
-    try:
-        meta, _, wkb, _ = pyogrio.raw.read(path)
-    except Exception as exc:
-        raise InputError(f"{path}: cannot read vector file ({exc})") from None
-    if meta.get("crs") is None:
-        raise CRSError(f"{path}: the file has no CRS")
-    geoms = shapely.from_wkb(wkb)
+    _, geoms, _ = _read_layer(path, crs)
     if not shapely.has_z(geoms).all():
         raise InputError(f"{path}: every breakline and point needs Z values (heights)")
-    src = pyproj.CRS.from_user_input(meta["crs"])
-    if not _same_horizontal(src, crs):
-        t = pyproj.Transformer.from_crs(_horizontal(src), _horizontal(crs), always_xy=True)
-        geoms = shapely.transform(
-            geoms, lambda xyz: np.column_stack([*t.transform(xyz[:, 0], xyz[:, 1]), xyz[:, 2]]), include_z=True
-        )
     parts = shapely.get_parts(geoms)
     kinds = shapely.get_type_id(parts)
     lines = [shapely.get_coordinates(g, include_z=True) for g in parts[np.isin(kinds, (1, 2))]]
@@ -156,6 +126,36 @@ def write_features(
             driver="GeoJSON",
             layer_options={"RFC7946": "NO", "WRITE_BBOX": "YES"},
         )
+
+
+def _read_layer(path: Path, crs: pyproj.CRS) -> tuple[dict, np.ndarray, list]:
+    """Geometries of the first layer in ``crs`` (heights kept), with the layer's metadata and fields.
+
+    Raises CRSError for a layer without CRS, or with longitude/latitude declared (as
+    GeoJSON without a crs member implies) but projected numbers inside.
+    """
+    try:
+        meta, _, wkb, fields = pyogrio.raw.read(path)
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read vector file ({exc})") from None
+    if meta.get("crs") is None:
+        raise CRSError(f"{path}: the file has no CRS (add a .prj or a crs member)")
+    src = pyproj.CRS.from_user_input(meta["crs"])
+    geoms = shapely.from_wkb(wkb)
+    if src.is_geographic:
+        b = shapely.bounds(geoms)
+        if np.nanmax(np.abs(b[:, [0, 2]])) > 180 or np.nanmax(np.abs(b[:, [1, 3]])) > 90:
+            raise CRSError(
+                f"{path}: the file's CRS is {crs_name(src)} (longitude/latitude; GeoJSON without "
+                "a crs member means WGS84) but its coordinates are projected; write the CRS into the file"
+            )
+    if not _same_horizontal(src, crs):
+        log.info("reprojecting %s from %s to %s", path.name, crs_name(src), crs_name(crs))
+        t = pyproj.Transformer.from_crs(_horizontal(src), _horizontal(crs), always_xy=True)
+        geoms = shapely.transform(
+            geoms, lambda xyz: np.column_stack([*t.transform(xyz[:, 0], xyz[:, 1]), xyz[:, 2:]]), include_z=True
+        )
+    return meta, geoms, fields
 
 
 def _polygon_parts(geom) -> tuple[list[shapely.Polygon], str | None]:

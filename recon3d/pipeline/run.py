@@ -61,6 +61,7 @@ class RunState:
     checkpoints_path: Path | None = None
     breaklines_path: Path | None = None
     altimetry_path: Path | None = None
+    truth_dsm_path: Path | None = None
     constraints: np.ndarray | None = None
     scene: Any = None
     cloud: PointCloud | None = None
@@ -91,6 +92,7 @@ def run(
     checkpoints: str | Path | None = None,
     breaklines: str | Path | None = None,
     altimetry: str | Path | None = None,
+    truth_dsm: str | Path | None = None,
     config: PipelineConfig | None = None,
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
@@ -110,6 +112,8 @@ def run(
     breaklines, altimetry : path-like, optional
         3-D lines (roads, water edges) and spot heights (vector file, or CSV x,y,z for
         altimetry) the DTM must honour.
+    truth_dsm : path-like, optional
+        A reference DSM (GeoTIFF) the DSM is compared with cell by cell.
     config : PipelineConfig, optional
     overwrite : bool
         Replace an existing, non-empty ``out_dir``.
@@ -136,6 +140,7 @@ def run(
         checkpoints_path=Path(checkpoints) if checkpoints else None,
         breaklines_path=Path(breaklines) if breaklines else None,
         altimetry_path=Path(altimetry) if altimetry else None,
+        truth_dsm_path=Path(truth_dsm) if truth_dsm else None,
     )
     try:
         for index, (name, stage) in enumerate(STAGES):
@@ -303,6 +308,12 @@ def evaluate_products(s: RunState) -> None:
         ref_ground = s.cloud.xyz[s.reference_classes == ASPRS.GROUND]
         tables.append(evaluate.against_points(s.dtm, ref_ground, product="DTM", reference="provider ground points", units=u))
         s.report["buildings_vs_provider"] = evaluate.building_coverage(s.cloud, s.reference_classes, s.labels, s.dsm)
+    if s.truth_dsm_path is not None:
+        from recon3d.io.geotiff import read_raster
+
+        truth = read_raster(s.truth_dsm_path)
+        tables.append(evaluate.against_raster(s.dsm, truth, product_name="DSM", reference_name="reference DSM", units=u))
+        s.report["dsm_filled_percent"] = round(100.0 * float(np.isfinite(s.dsm.data).mean()), 2)
     if s.checkpoints is not None:
         products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
         tables += evaluate.against_checkpoints(products, s.checkpoints, u)

@@ -12,6 +12,7 @@ from recon3d.io.checkpoints import CheckPoints
 
 __all__ = [
     "against_checkpoints",
+    "against_raster",
     "against_points",
     "building_coverage",
     "evaluate_ground",
@@ -178,3 +179,16 @@ def _match_points(a: np.ndarray, b: np.ndarray, *, tolerance: float) -> np.ndarr
 
     dist, idx = cKDTree(a).query(b, distance_upper_bound=tolerance)
     return idx if np.isfinite(dist).all() else None
+
+
+def against_raster(product: Raster, reference: Raster, *, product_name: str, reference_name: str, units: Units) -> AccuracyReport:
+    """Product minus reference at the product's cell centres (reference sampled bilinearly).
+
+    Cells where either is NaN are left out; ``n`` counts the compared cells.
+    """
+    x, y = product.cell_centers()
+    gx, gy = np.meshgrid(x, y)
+    ref = reference.sample(gx.ravel(), gy.ravel()).reshape(product.shape)
+    return AccuracyReport.from_errors(
+        (product.data - ref).ravel(), product=product_name, reference=reference_name, metres_per_unit=units.vertical
+    )
