@@ -130,17 +130,20 @@ def rectify_pair(
     The camera that ends up on the left (its matches shifted towards smaller x in the
     other image) comes first in the result whatever the input order.
 
+    A baseline along the image columns (forward overlap) is handled by turning both
+    images and cameras 90 degrees first; the result's cameras are the turned ones.
+
     Raises
     ------
     InputError
-        A baseline along the image columns (rotate the images) or a residual
-        vertical parallax above :data:`MAX_PARALLAX_PX`.
+        A residual vertical parallax above ``max_parallax``.
     """
     R, T = _relative_pose(a, b)
-    if abs(T[1]) > abs(T[0]):
-        raise InputError(
-            f"images {a.name} and {b.name}: the baseline runs along the image columns; "
-            "rotate both images by 90 degrees (and their cameras) so that it runs along the rows"
+    if abs(T[1]) > abs(T[0]):  # baseline along the columns (forward overlap): turn both views
+        rot = cv2.ROTATE_90_CLOCKWISE
+        return rectify_pair(
+            a.rotated_clockwise(), b.rotated_clockwise(), cv2.rotate(image_a, rot), cv2.rotate(image_b, rot),
+            max_parallax=max_parallax,
         )
     if T[0] > 0:  # b lies to the left of a: swap so that disparities are positive
         return rectify_pair(b, a, image_b, image_a, max_parallax=max_parallax)
