@@ -171,6 +171,15 @@ def demo(ctx, out_dir, seed, overwrite):
         _print_summary(state)
 
 
+@cli.command()
+@click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
+def report(out_dir):
+    """Regenerate OUT/report.html from the products and report.json of a run."""
+    from recon3d.report import write_report
+
+    click.echo(f"wrote {write_report(out_dir)}")
+
+
 @cli.group()
 def evaluate():
     """Measure products against references (ISPRS definitions)."""

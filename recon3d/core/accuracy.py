@@ -6,7 +6,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["AccuracyReport"]
+__all__ = ["HIST_EDGES", "AccuracyReport"]
+
+#: Bin edges (m) of the error histograms in reports; errors beyond +-3 m fall in the end bins.
+HIST_EDGES = np.linspace(-3.0, 3.0, 25)
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,7 @@ class AccuracyReport:
     nmad: float
     within_1m: float
     within_2m: float
+    histogram: dict | None = None
 
     @classmethod
     def from_errors(
@@ -43,6 +47,7 @@ class AccuracyReport:
         if e.size == 0:
             nan = float("nan")
             return cls(product, reference, 0, nan, nan, nan, nan, nan, nan, nan)
+        counts, _ = np.histogram(np.clip(e, HIST_EDGES[0], HIST_EDGES[-1]), bins=HIST_EDGES)
         a = np.abs(e)
         return cls(
             product=product,
@@ -55,6 +60,7 @@ class AccuracyReport:
             nmad=float(1.4826 * np.median(np.abs(e - np.median(e)))),
             within_1m=float(100.0 * np.mean(a <= 1.0)),
             within_2m=float(100.0 * np.mean(a <= 2.0)),
+            histogram={"edges_m": HIST_EDGES.tolist(), "counts": counts.tolist(), "clipped_to_range": True},
         )
 
     def to_dict(self) -> dict:

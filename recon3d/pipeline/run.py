@@ -151,6 +151,9 @@ def run(
             state.timings[name] = round(time.perf_counter() - start, 3)
             log.info("stage %s done in %.2f s", name, state.timings[name])
         _write_json(work_dir / "run.json", _run_record(state))
+        from recon3d.report import write_report
+
+        write_report(work_dir)
         _publish(work_dir, out_dir)
     finally:
         shutil.rmtree(work_dir, ignore_errors=True)
@@ -327,13 +330,29 @@ def evaluate_products(s: RunState) -> None:
         )
     )
     s.report["accuracy"] = [t.to_dict() for t in tables]
+    _roof_errors(s, -roofs)
     statuses = [b.status for b in s.city]
     s.report["buildings"] = {
         "count": len(s.city),
         "with_solid": sum(bool(b.solids) for b in s.city),
         "failed": {r: sum(b.reason == r for b in s.city) for r in sorted({b.reason for b in s.city if b.reason})},
         "statuses": {k: statuses.count(k) for k in sorted(set(statuses))},
+        "lods": {lod: sum(lod in b.solids for b in s.city) for lod in sorted({k for b in s.city for k in b.solids})},
     }
+
+
+def _roof_errors(s: RunState, model_minus_dsm: np.ndarray) -> None:
+    """Per building: RMS of model DSM minus measured DSM over its cells (attribute roof_rms_m)."""
+    from scipy import ndimage
+
+    labels = np.where(np.isfinite(model_minus_dsm), s.labels, 0)
+    index = np.arange(1, len(s.city) + 1)
+    sq = np.nan_to_num(model_minus_dsm) ** 2
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(ndimage.mean(sq, labels, index)) * s.units.vertical if len(index) else []
+    for b, value in zip(s.city, rms, strict=True):
+        if b.solids and np.isfinite(value):
+            b.attributes["roof_rms_m"] = round(float(value), 3)
 
 
 def write_products(s: RunState) -> None:

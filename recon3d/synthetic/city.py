@@ -1,0 +1,731 @@
+"""Procedural test cities with exact ground truth.
+
+A :class:`SyntheticCity` is terrain with gentle relief, a grid of streets and lots,
+one building per lot (flat, shed, gable, hip and pyramid roofs on rectangles; flat L
+and T plans; one courtyard building) and trees (ellipsoid or cone crowns on trunks).
+Everything is a triangle mesh in a local metric frame (z up, float32-safe
+coordinates); ``city.origin`` is added to get world coordinates in ``city.crs``
+(UTM-sized by default, so consumers are tested against the float32 pitfall).
+
+The truth is exact: :func:`truth_dsm` casts vertical rays at the mesh,
+:func:`truth_dtm` evaluates the piecewise-linear terrain, and each building keeps
+its footprint, roof type, eave and ridge heights and its LoD2 solid.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+import shapely.affinity
+import trimesh
+from affine import Affine
+
+from recon3d.buildings.lod import clean_footprint, lod1_solid
+from recon3d.core.city import Solid
+from recon3d.core.geo import LocalFrame
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "MATERIALS",
+    "BuildingTruth",
+    "StreetGrid",
+    "SyntheticCity",
+    "Terrain",
+    "TreeTruth",
+    "checkpoints",
+    "make_city",
+    "truth_dsm",
+    "truth_dtm",
+]
+
+#: Surface materials, the index stored per triangle in ``SyntheticCity.face_material``.
+MATERIALS = ("ground", "tiles", "gravel", "wall", "foliage", "bark")
+GROUND, TILES, GRAVEL, WALL, FOLIAGE, BARK = range(len(MATERIALS))
+
+#: Roof types of the buildings, in the order every city gets them first.
+ROOF_TYPES = ("flat", "shed", "gable", "hip", "pyramid")
+#: How often each roof type is drawn once every type is present.
+_ROOF_WEIGHTS = (0.3, 0.1, 0.3, 0.2, 0.1)
+
+_STREET_WIDTH = 8.0
+_LOT_PITCH = 36.0
+_SETBACK = 2.0
+_TERRAIN_SPACING = 2.5
+_DEFAULT_ORIGIN = (500000.0, 5400000.0, 0.0)
+
+
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    """An independent generator per purpose, so adding trees does not move buildings."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), stream]))
+
+
+# --------------------------------------------------------------------------- terrain
+
+
+@dataclass
+class Terrain:
+    """A height grid triangulated along one diagonal per cell (the terrain mesh).
+
+    Parameters
+    ----------
+    x0, y0 : float
+        Local coordinates of grid node (0, 0).
+    spacing : float
+        Node spacing in metres.
+    z : (ny, nx) float64
+        Local heights of the nodes; ``z[j, i]`` is at ``(x0 + i*spacing, y0 + j*spacing)``.
+    """
+
+    x0: float
+    y0: float
+    spacing: float
+    z: np.ndarray
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Exact local height of the terrain mesh at local (x, y), same shape as ``x``.
+
+        Cells are split along the diagonal from node (i, j) to (i+1, j+1), as in
+        :meth:`mesh`, so this equals a vertical ray cast on the mesh. Points outside
+        the grid are clamped to its edge.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        ny, nx = self.z.shape
+        fx = np.clip((x - self.x0) / self.spacing, 0, nx - 1)
+        fy = np.clip((y - self.y0) / self.spacing, 0, ny - 1)
+        i = np.minimum(np.floor(fx).astype(np.int64), nx - 2)
+        j = np.minimum(np.floor(fy).astype(np.int64), ny - 2)
+        u, v = fx - i, fy - j
+        z00, z10 = self.z[j, i], self.z[j, i + 1]
+        z01, z11 = self.z[j + 1, i], self.z[j + 1, i + 1]
+        lower = z00 + u * (z10 - z00) + v * (z11 - z10)
+        upper = z00 + v * (z01 - z00) + u * (z11 - z01)
+        return np.where(u >= v, lower, upper)
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices (ny*nx, 3) float64 and triangles (2*(ny-1)*(nx-1), 3) int64, upward."""
+        ny, nx = self.z.shape
+        xs = self.x0 + self.spacing * np.arange(nx)
+        ys = self.y0 + self.spacing * np.arange(ny)
+        gx, gy = np.meshgrid(xs, ys)
+        vertices = np.column_stack([gx.ravel(), gy.ravel(), self.z.ravel()])
+        idx = np.arange(ny * nx).reshape(ny, nx)
+        a, b = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
+        c, d = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        # (a, b, d) is the u >= v half, (a, d, c) the other: both counter-clockwise from above
+        faces = np.concatenate([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+        return vertices, faces
+
+
+def _make_terrain(rng: np.random.Generator, size: float, margin: float) -> Terrain:
+    """Smooth random hills (a few metres) on a gentle slope, around 50 m above the datum."""
+    n = int(math.ceil((size + 2 * margin) / _TERRAIN_SPACING)) + 1
+    x0 = y0 = -margin
+    coords = x0 + _TERRAIN_SPACING * np.arange(n)
+    gx, gy = np.meshgrid(coords, coords)
+    slope = rng.uniform(-0.012, 0.012, size=2)
+    z = 50.0 + slope[0] * (gx - size / 2) + slope[1] * (gy - size / 2)
+    for _ in range(int(rng.integers(4, 7))):
+        cx, cy = rng.uniform(-0.2 * size, 1.2 * size, size=2)
+        sigma = rng.uniform(0.2, 0.45) * max(size, 100.0)
+        amp = rng.uniform(-3.0, 3.0)
+        z += amp * np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * sigma**2))
+    return Terrain(x0, y0, _TERRAIN_SPACING, z)
+
+
+# --------------------------------------------------------------------------- streets
+
+
+@dataclass(frozen=True)
+class StreetGrid:
+    """Streets every ``pitch`` metres from ``start`` (local x and y), ``width`` wide, on
+    ``n + 1`` lines each way; the ``n`` x ``n`` lots lie between them."""
+
+    start: float
+    pitch: float
+    width: float
+    n: int
+
+    def is_street(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Boolean mask, same shape as ``x``: True on the street surface (local x, y)."""
+        end = self.start + self.n * self.pitch + self.width
+
+        def on_line(c):
+            m = np.mod(c - self.start, self.pitch)
+            return m < self.width
+
+        inside = (x >= self.start) & (x <= end) & (y >= self.start) & (y <= end)
+        return inside & (on_line(np.asarray(x)) | on_line(np.asarray(y)))
+
+    def lot(self, i: int, j: int) -> shapely.Polygon:
+        """Lot (i, j) as a local polygon (the square between four street lines)."""
+        x = self.start + i * self.pitch + self.width
+        y = self.start + j * self.pitch + self.width
+        s = self.pitch - self.width
+        return shapely.box(x, y, x + s, y + s)
+
+
+def _street_grid(size: float) -> StreetGrid:
+    n = round((size - _STREET_WIDTH) / _LOT_PITCH)
+    pitch = (size - _STREET_WIDTH) / max(n, 1)
+    if n < 1 or pitch < 30.0:
+        raise ValueError(f"a city of {size} m has no room for one lot (at least 38 m)")
+    return StreetGrid(0.0, pitch, _STREET_WIDTH, n)
+
+
+# --------------------------------------------------------------------------- buildings
+
+
+@dataclass
+class BuildingTruth:
+    """One building of a synthetic city and its exact geometry.
+
+    Attributes
+    ----------
+    id : str
+    plan : str
+        "rectangle", "L", "T" or "courtyard".
+    roof_type : str
+        One of "flat", "shed", "gable", "hip", "pyramid".
+    footprint : shapely.Polygon
+        Outline in world coordinates (counter-clockwise, courtyard as a hole).
+    footprint_local : shapely.Polygon
+        The same in local coordinates.
+    ground_z : float
+        World height of the lowest terrain point under the footprint (where walls start).
+    eave_z, ridge_z : float
+        World heights of the lowest and highest roof points.
+    lod1_z : float
+        Height of the LoD1 prism with the same volume as the building.
+    top : (3,) float64
+        World coordinates of the highest roof point (the roof check point).
+    solid : Solid
+        The LoD2 truth solid in local coordinates, with semantic surfaces.
+    """
+
+    id: str
+    plan: str
+    roof_type: str
+    footprint: shapely.Polygon
+    footprint_local: shapely.Polygon
+    ground_z: float
+    eave_z: float
+    ridge_z: float
+    lod1_z: float
+    top: np.ndarray
+    solid: Solid
+
+    @property
+    def height(self) -> float:
+        """Ridge height above the ground, metres."""
+        return self.ridge_z - self.ground_z
+
+
+def _rect_solid(kind: str, a: float, b: float, zb: float, ze: float, zr: float) -> Solid:
+    """A rectangular building ``[-a, a] x [-b, b]`` (ridge along x) with roof ``kind``.
+
+    Vertices 0-3 are the base corners (counter-clockwise from above), 4-7 the eave
+    corners; gable and hip add ridge ends 8, 9, pyramid an apex 8. Surfaces are
+    oriented outward.
+    """
+    corners = np.array([[-a, -b], [a, -b], [a, b], [-a, b]])
+    base = np.column_stack([corners, np.full(4, zb)])
+    top_z = np.array([ze, ze, zr, zr]) if kind == "shed" else np.full(4, ze)
+    eave = np.column_stack([corners, top_z])
+    extra: list[list[float]] = []
+    walls = [[0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
+    if kind in ("flat", "shed"):
+        roofs = [[4, 5, 6, 7]]
+    elif kind == "gable":
+        extra = [[-a, 0, zr], [a, 0, zr]]
+        walls = [[0, 1, 5, 4], [1, 2, 6, 9, 5], [2, 3, 7, 6], [3, 0, 4, 8, 7]]
+        roofs = [[4, 5, 9, 8], [6, 7, 8, 9]]
+    elif kind == "hip":
+        extra = [[-a + b, 0, zr], [a - b, 0, zr]]
+        roofs = [[4, 5, 9, 8], [5, 6, 9], [6, 7, 8, 9], [7, 4, 8]]
+    elif kind == "pyramid":
+        extra = [[0, 0, zr]]
+        roofs = [[4, 5, 8], [5, 6, 8], [6, 7, 8], [7, 4, 8]]
+    else:
+        raise ValueError(f"unknown roof type {kind!r}")
+    vertices = np.concatenate([base, eave, np.reshape(extra, (-1, 3))])
+    surfaces = [[np.array([3, 2, 1, 0])]] + [[np.array(w)] for w in walls] + [[np.array(r)] for r in roofs]
+    semantics = ["GroundSurface"] + ["WallSurface"] * len(walls) + ["RoofSurface"] * len(roofs)
+    return Solid(vertices, surfaces, semantics)
+
+
+def _place(solid: Solid, angle: float, center: np.ndarray) -> Solid:
+    """The solid rotated by ``angle`` (radians, about z) and moved to local ``center`` (x, y)."""
+    c, s = math.cos(angle), math.sin(angle)
+    v = solid.vertices.copy()
+    v[:, :2] = v[:, :2] @ np.array([[c, s], [-s, c]]) + center
+    return Solid(v, solid.surfaces, solid.semantics)
+
+
+def _plan_polygon(
+    plan: str, roof: str, rng: np.random.Generator, room: float
+) -> tuple[shapely.Polygon, float, float]:
+    """A footprint centred on (0, 0) before rotation; returns it and its half-sizes (a, b).
+
+    Rectangles are longer along x (a >= b); a hip roof gets ``b <= 0.75 a`` so its
+    ridge has a length, a pyramid roof a square.
+    """
+    if plan == "rectangle":
+        length = rng.uniform(10.0, room)
+        width = rng.uniform(8.0, min(length, 16.0))
+        if roof == "hip":
+            width = min(width, 0.75 * length)
+        elif roof == "pyramid":
+            width = length = min(length, 18.0)
+        return shapely.box(-length / 2, -width / 2, length / 2, width / 2), length / 2, width / 2
+    if plan == "courtyard":
+        s = rng.uniform(0.8, 1.0) * room
+        h = rng.uniform(0.3, 0.4) * s
+        outer = shapely.box(-s / 2, -s / 2, s / 2, s / 2)
+        return outer.difference(shapely.box(-h / 2, -h / 2, h / 2, h / 2)), s / 2, s / 2
+    s = rng.uniform(0.8, 1.0) * room
+    w = rng.uniform(7.0, 9.0)
+    if plan == "L":
+        poly = shapely.union(shapely.box(0, 0, s, w), shapely.box(0, 0, w, s))
+    elif plan == "T":
+        poly = shapely.union(shapely.box(0, s - w, s, s), shapely.box((s - w) / 2, 0, (s + w) / 2, s))
+    else:
+        raise ValueError(f"unknown plan {plan!r}")
+    return shapely.affinity.translate(poly, -s / 2, -s / 2), s / 2, s / 2
+
+
+def _ground_range(terrain: Terrain, poly: shapely.Polygon) -> tuple[float, float]:
+    """(min, max) local terrain height over a polygon (outline every 0.25 m and grid nodes)."""
+    rings = [poly.exterior, *poly.interiors]
+    pts = [shapely.line_interpolate_point(r, np.arange(0, r.length, 0.25)) for r in rings]
+    xy = np.concatenate([shapely.get_coordinates(p) for p in pts])
+    ny, nx = terrain.z.shape
+    gx = terrain.x0 + terrain.spacing * np.arange(nx)
+    gy = terrain.y0 + terrain.spacing * np.arange(ny)
+    minx, miny, maxx, maxy = poly.bounds
+    sx, sy = gx[(gx >= minx) & (gx <= maxx)], gy[(gy >= miny) & (gy <= maxy)]
+    if len(sx) and len(sy):
+        mx, my = np.meshgrid(sx, sy)
+        inside = shapely.contains_xy(poly, mx, my)
+        xy = np.concatenate([xy, np.column_stack([mx[inside], my[inside]])])
+    z = terrain.height(xy[:, 0], xy[:, 1])
+    return float(z.min()), float(z.max())
+
+
+def _make_building(
+    bid: str, plan: str, roof: str, lot: shapely.Polygon, terrain: Terrain, frame: LocalFrame, rng: np.random.Generator
+) -> BuildingTruth:
+    """One building inside ``lot`` (local), standing on the terrain."""
+    inner = lot.buffer(-_SETBACK, join_style="mitre")
+    room = min(inner.bounds[2] - inner.bounds[0], inner.bounds[3] - inner.bounds[1])
+    center = np.array(lot.centroid.coords[0])
+    for attempt in range(50):
+        poly0, a, b = _plan_polygon(plan, roof, rng, room)
+        angle = 0.0 if attempt > 40 or rng.random() < 0.4 else rng.uniform(-0.35, 0.35)
+        poly = shapely.affinity.translate(shapely.affinity.rotate(poly0, angle, use_radians=True, origin=(0, 0)), *center)
+        if inner.contains(poly):
+            break
+    else:  # pragma: no cover - the axis-aligned attempts always fit
+        raise RuntimeError(f"building {bid} does not fit its lot")
+    zmin, zmax = _ground_range(terrain, poly)
+    rise = _roof_rise(roof, a, b, rng)
+    eave_h = rng.uniform(4.5, 25.0 - rise - (zmax - zmin))
+    zb, ze = zmin, zmax + eave_h
+    zr = ze + rise
+    world_poly = shapely.affinity.translate(poly, frame.origin[0], frame.origin[1])
+    if roof == "flat":
+        fp = clean_footprint(world_poly, 1e-6)
+        solid = lod1_solid(fp, zb + frame.origin[2], ze + frame.origin[2], frame)
+    else:
+        solid = _place(_rect_solid(roof, a, b, zb, ze, zr), angle, center)
+    top = _roof_top(roof, poly, angle, center, a, b, ze, zr)
+    volume = float(solid.to_trimesh().volume)
+    oz = frame.origin[2]
+    return BuildingTruth(
+        id=bid,
+        plan=plan,
+        roof_type=roof,
+        footprint=shapely.orient_polygons(world_poly),
+        footprint_local=shapely.orient_polygons(poly),
+        ground_z=zb + oz,
+        eave_z=ze + oz,
+        ridge_z=zr + oz,
+        lod1_z=zb + volume / poly.area + oz,
+        top=frame.to_world(top[None])[0],
+        solid=solid,
+    )
+
+
+def _roof_rise(roof: str, a: float, b: float, rng: np.random.Generator) -> float:
+    """Height of the ridge above the eaves for a roof over half-sizes (a, b)."""
+    if roof == "flat":
+        return 0.0
+    if roof == "shed":
+        return 2 * b * math.tan(math.radians(rng.uniform(8.0, 18.0)))
+    return min(a, b) * math.tan(math.radians(rng.uniform(25.0, 42.0)))
+
+
+def _roof_top(roof, poly, angle, center, a, b, ze, zr) -> np.ndarray:
+    """Local (3,) highest roof point: the ridge middle, the apex, the middle of a flat
+    roof, or for a shed roof the middle of its high edge moved 0.5 m inward (off the wall)."""
+    if roof == "flat":
+        p = poly.centroid if poly.contains(poly.centroid) else poly.representative_point()
+        return np.array([p.x, p.y, ze])
+    local = np.array([0.0, 0.0, zr])
+    if roof == "shed":
+        local = np.array([0.0, b - 0.5, zr - 0.5 * (zr - ze) / (2 * b)])
+    c, s = math.cos(angle), math.sin(angle)
+    xy = local[:2] @ np.array([[c, s], [-s, c]]) + center
+    return np.array([xy[0], xy[1], local[2]])
+
+
+def _building_kinds(n: int, rng: np.random.Generator) -> list[tuple[str, str]]:
+    """(plan, roof) per building: every roof type, an L, a T and a courtyard first."""
+    first = [("rectangle", r) for r in ROOF_TYPES] + [("courtyard", "flat"), ("L", "flat"), ("T", "flat")]
+    extra = rng.choice(len(ROOF_TYPES), size=max(0, n - len(first)), p=_ROOF_WEIGHTS)
+    rest = [("rectangle", ROOF_TYPES[int(k)]) for k in extra]
+    kinds = first[:n] + rest
+    order = rng.permutation(len(kinds))
+    return [kinds[i] for i in order]
+
+
+# --------------------------------------------------------------------------- trees
+
+
+@dataclass
+class TreeTruth:
+    """A tree: trunk and an ellipsoid (deciduous) or cone (conifer) crown.
+
+    ``x``, ``y`` are local; ``ground_z`` and ``top_z`` world heights.
+    """
+
+    id: str
+    x: float
+    y: float
+    ground_z: float
+    top_z: float
+    crown_radius: float
+    crown: str
+
+
+def _tree_meshes(tree: TreeTruth, oz: float) -> list[tuple[trimesh.Trimesh, int]]:
+    """(mesh, material) of the trunk and the crown, in local coordinates."""
+    g, top, r = tree.ground_z - oz, tree.top_z - oz, tree.crown_radius
+    depth = (top - g) * (0.75 if tree.crown == "cone" else 0.6)
+    base = top - depth
+    trunk = trimesh.creation.cylinder(radius=0.25, segment=[[tree.x, tree.y, g - 0.5], [tree.x, tree.y, base + 0.3]], sections=8)
+    if tree.crown == "cone":
+        crown = trimesh.creation.cone(radius=r, height=depth, sections=16)
+        crown.apply_translation([tree.x, tree.y, base])
+    else:
+        crown = trimesh.creation.icosphere(subdivisions=2)
+        crown.apply_scale([r, r, depth / 2])
+        crown.apply_translation([tree.x, tree.y, base + depth / 2])
+    return [(trunk, BARK), (crown, FOLIAGE)]
+
+
+def _make_trees(
+    rng: np.random.Generator, size: float, terrain: Terrain, footprints: list[shapely.Polygon], oz: float
+) -> list[TreeTruth]:
+    """Trees on free ground, clear of buildings (crown + 1.5 m) and of each other."""
+    blocked = shapely.union_all(footprints) if footprints else shapely.Polygon()
+    target = int(size * size / 700)
+    trees: list[TreeTruth] = []
+    for _ in range(target * 20):
+        if len(trees) >= target:
+            break
+        x, y = rng.uniform(4.0, size - 4.0, size=2)
+        r = rng.uniform(1.8, 4.0)
+        if blocked.distance(shapely.Point(x, y)) < r + 1.5:
+            continue
+        if any(math.hypot(x - t.x, y - t.y) < r + t.crown_radius for t in trees):
+            continue
+        g = float(terrain.height(np.array([x]), np.array([y]))[0])
+        height = rng.uniform(max(5.0, 1.6 * r), 15.0)
+        crown = "cone" if rng.random() < 0.3 else "ellipsoid"
+        trees.append(TreeTruth(f"t{len(trees) + 1}", float(x), float(y), g + oz, g + height + oz, float(r), crown))
+    return trees
+
+
+# --------------------------------------------------------------------------- the city
+
+
+@dataclass
+class SyntheticCity:
+    """A procedural city and its truth.
+
+    Attributes
+    ----------
+    seed : int
+    size : float
+        The city covers local ``[0, size] x [0, size]``; the terrain extends beyond.
+    crs : str
+        World CRS, "EPSG:32631".
+    origin : (3,) tuple of float
+        World coordinates of the local origin: ``world = local + origin``.
+    terrain : Terrain
+    streets : StreetGrid
+    buildings : list of BuildingTruth
+    trees : list of TreeTruth
+    vertices : (n, 3) float64
+        Local vertices of every surface (terrain, buildings, trees).
+    faces : (m, 3) int64
+        Triangles, oriented outward / upward.
+    face_material : (m,) int8
+        Index into :data:`MATERIALS` per triangle.
+    face_tint : (m, 3) float32
+        RGB albedo multiplier per triangle (per-building roof colour).
+    face_owner : (m,) int32
+        -1 for terrain, building index, or ``1000000 + tree index``.
+    """
+
+    seed: int
+    size: float
+    crs: str
+    origin: tuple[float, float, float]
+    terrain: Terrain
+    streets: StreetGrid
+    buildings: list[BuildingTruth]
+    trees: list[TreeTruth]
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_material: np.ndarray
+    face_tint: np.ndarray
+    face_owner: np.ndarray
+    _scene: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def frame(self) -> LocalFrame:
+        return LocalFrame(self.origin)
+
+    def ground_height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """World terrain height at world (x, y) (exact, the terrain mesh), shape of ``x``."""
+        ox, oy, oz = self.origin
+        return self.terrain.height(np.asarray(x) - ox, np.asarray(y) - oy) + oz
+
+    def raycaster(self):
+        """An :class:`open3d.t.geometry.RaycastingScene` of every surface (local, cached).
+
+        The single geometry's primitive ids index ``faces`` and the ``face_*`` arrays.
+        """
+        if self._scene is None:
+            import open3d as o3d
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(
+                o3d.core.Tensor(self.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.faces.astype(np.uint32)),
+            )
+            self._scene = scene
+        return self._scene
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """World (west, south, east, north) of the city area."""
+        ox, oy, _ = self.origin
+        return (ox, oy, ox + self.size, oy + self.size)
+
+    def z_range(self) -> tuple[float, float]:
+        """Local (lowest terrain, highest surface) heights inside the city area."""
+        inside = (self.vertices[:, :2] >= 0).all(axis=1) & (self.vertices[:, :2] <= self.size).all(axis=1)
+        z = self.vertices[inside, 2]
+        return float(z.min()), float(z.max())
+
+
+def make_city(
+    seed: int = 0,
+    *,
+    size: float = 200.0,
+    n_buildings: int | None = None,
+    margin: float | None = None,
+    origin: tuple[float, float, float] = _DEFAULT_ORIGIN,
+    crs: str = "EPSG:32631",
+) -> SyntheticCity:
+    """Build a procedural city, deterministic for a given seed.
+
+    Parameters
+    ----------
+    seed : int
+    size : float
+        Side of the square city area in metres (at least 38 m: one lot).
+    n_buildings : int, optional
+        Number of buildings; default one per lot (streets 8 m wide every 30 to 42 m,
+        lined with the city edges). At most the number of lots.
+    margin : float, optional
+        How far the terrain extends beyond the city area (default ``size``, so
+        oblique views of the city see terrain to the image borders).
+    origin : (3,) float
+        World coordinates of the local origin.
+    crs : str
+
+    Returns
+    -------
+    SyntheticCity
+
+    Raises
+    ------
+    ValueError
+        ``n_buildings`` exceeds the number of lots, or the city is too small.
+    """
+    frame = LocalFrame(tuple(float(v) for v in origin))
+    terrain = _make_terrain(_rng(seed, 1), size, size if margin is None else margin)
+    streets = _street_grid(size)
+    n_lots = streets.n**2
+    n = n_lots if n_buildings is None else int(n_buildings)
+    if n > n_lots:
+        raise ValueError(f"{n} buildings do not fit a {size} m city ({n_lots} lots); make it larger")
+    rng = _rng(seed, 2)
+    lots = sorted(rng.choice(n_lots, size=n, replace=False).tolist())
+    kinds = _building_kinds(n, rng)
+    buildings = []
+    for k, (lot, (plan, roof)) in enumerate(zip(lots, kinds, strict=True)):
+        poly = streets.lot(lot % streets.n, lot // streets.n)
+        buildings.append(_make_building(f"b{k + 1}", plan, roof, poly, terrain, frame, rng))
+    trees = _make_trees(_rng(seed, 3), size, terrain, [b.footprint_local for b in buildings], frame.origin[2])
+    city = _assemble(seed, size, crs, frame, terrain, streets, buildings, trees)
+    log.info(
+        "synthetic city seed %d: %.0f m, %d buildings, %d trees, %d triangles",
+        seed, size, len(buildings), len(trees), len(city.faces),
+    )
+    return city
+
+
+def _assemble(seed, size, crs, frame, terrain, streets, buildings, trees) -> SyntheticCity:
+    """Merge every surface into one triangle soup with per-face attributes."""
+    rng = _rng(seed, 4)
+    verts, faces, mats, tints, owners = [], [], [], [], []
+    count = 0
+
+    def add(v, f, mat, tint, owner):
+        nonlocal count
+        verts.append(np.asarray(v, np.float64))
+        faces.append(np.asarray(f, np.int64) + count)
+        mats.append(np.asarray(mat, np.int8) * np.ones(len(f), np.int8))
+        tints.append(np.tile(np.asarray(tint, np.float32), (len(f), 1)))
+        owners.append(np.full(len(f), owner, np.int32))
+        count += len(v)
+
+    tv, tf = terrain.mesh()
+    add(tv, tf, GROUND, (1.0, 1.0, 1.0), -1)
+    for k, b in enumerate(buildings):
+        mesh = b.solid.to_trimesh()
+        sem = np.asarray(mesh.metadata["semantics"])
+        roof_mat = GRAVEL if b.roof_type == "flat" else TILES
+        mat = np.where(sem == "RoofSurface", roof_mat, WALL)
+        add(mesh.vertices, mesh.faces, mat, rng.uniform(0.75, 1.25, 3), k)
+    for k, t in enumerate(trees):
+        tint = rng.uniform(0.8, 1.2, 3)
+        for mesh, mat in _tree_meshes(t, frame.origin[2]):
+            add(mesh.vertices, mesh.faces, mat, tint, 1_000_000 + k)
+    return SyntheticCity(
+        seed=seed,
+        size=float(size),
+        crs=crs,
+        origin=frame.origin,
+        terrain=terrain,
+        streets=streets,
+        buildings=buildings,
+        trees=trees,
+        vertices=np.concatenate(verts),
+        faces=np.concatenate(faces),
+        face_material=np.concatenate(mats),
+        face_tint=np.concatenate(tints),
+        face_owner=np.concatenate(owners),
+    )
+
+
+# --------------------------------------------------------------------------- truth
+
+
+def _cell_centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """World x, y (rows, cols) of the cell centres of a grid."""
+    rows, cols = shape
+    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    x = transform.c + c * transform.a + r * transform.b
+    y = transform.f + c * transform.d + r * transform.e
+    return x, y
+
+
+def truth_dsm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) -> np.ndarray:
+    """Highest surface at each cell centre, by vertical ray casting.
+
+    Parameters
+    ----------
+    city : SyntheticCity
+    transform : affine.Affine
+        World grid, rasterio convention (pixel corners; centres at +0.5).
+    shape : (rows, cols)
+
+    Returns
+    -------
+    (rows, cols) float32
+        World heights; NaN where no surface is hit (off the terrain).
+    """
+    import open3d as o3d
+
+    x, y = _cell_centres(transform, shape)
+    ox, oy, oz = city.origin
+    top = city.vertices[:, 2].max() + 10.0
+    rays = np.zeros((*x.shape, 6), np.float32)
+    rays[..., 0], rays[..., 1], rays[..., 2] = x - ox, y - oy, top
+    rays[..., 5] = -1.0
+    t = city.raycaster().cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    z = np.where(np.isfinite(t), top - t + oz, np.nan)
+    return z.astype(np.float32)
+
+
+def truth_dtm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) -> np.ndarray:
+    """Terrain height at each cell centre (the exact terrain mesh, also under buildings).
+
+    Returns
+    -------
+    (rows, cols) float32
+        World heights.
+    """
+    x, y = _cell_centres(transform, shape)
+    return city.ground_height(x, y).astype(np.float32)
+
+
+def checkpoints(city: SyntheticCity, spacing: float = 20.0) -> tuple[np.ndarray, list[str], list[str]]:
+    """Check points: ground on a grid off buildings and trees, one on top of each roof.
+
+    Ground points lie on a ``spacing`` grid inside the city, at least 2 m from every
+    footprint and 2 m beyond every tree crown; roof points are each building's
+    :attr:`BuildingTruth.top`.
+
+    Returns
+    -------
+    xyz : (n, 3) float64
+        World coordinates.
+    ids : list of str
+        "g<k>" for ground, the building id with "-roof" for roofs.
+    kinds : list of str
+        "ground" or "roof".
+    """
+    half = spacing / 2
+    g = np.arange(half, city.size, spacing)
+    gx, gy = (a.ravel() for a in np.meshgrid(g, g))
+    keep = np.ones(len(gx), bool)
+    blocked = shapely.union_all([b.footprint_local for b in city.buildings])
+    if not blocked.is_empty:
+        keep &= shapely.distance(blocked, shapely.points(gx, gy)) >= 2.0
+    for t in city.trees:
+        keep &= np.hypot(gx - t.x, gy - t.y) >= t.crown_radius + 2.0
+    ox, oy, oz = city.origin
+    ground = np.column_stack([gx[keep] + ox, gy[keep] + oy, city.terrain.height(gx[keep], gy[keep]) + oz])
+    roofs = np.array([b.top for b in city.buildings]).reshape(-1, 3)
+    xyz = np.concatenate([ground, roofs])
+    ids = [f"g{k + 1}" for k in range(len(ground))] + [f"{b.id}-roof" for b in city.buildings]
+    kinds = ["ground"] * len(ground) + ["roof"] * len(roofs)
+    return xyz, ids, kinds
+
+
+def nice_cell_size(gsd: float) -> float:
+    """``gsd`` rounded to the nearest of 1, 2, 2.5 and 5 times a power of ten."""
+    exp = math.floor(math.log10(gsd))
+    steps = np.array([1.0, 2.0, 2.5, 5.0, 10.0]) * 10.0**exp
+    return float(round(steps[np.argmin(np.abs(np.log(steps / gsd)))], 6))

@@ -1,0 +1,429 @@
+"""Aerial stereo cameras and ray-cast rendering of a :class:`SyntheticCity`.
+
+Cameras follow COLMAP: ``x_cam = R @ x_world + t`` with the camera looking along
++z, image x to the right and y down, and the centre of the top-left pixel at
+(0.5, 0.5) (OpenCV puts it at (0, 0)). Each pixel is rendered with one ray through
+its centre, so the surface point seen at pixel (row, col) projects exactly to
+``(col + 0.5, row + 0.5)``.
+
+Shading is Lambertian under a sun with ambient light and cast shadows; the albedo is
+a procedural texture (multi-octave value noise evaluated at the 3-D hit point, so
+both views see the same texture), then Gaussian sensor noise and 8-bit quantisation.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon3d.synthetic.city import MATERIALS, SyntheticCity
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Lighting", "PinholeCamera", "Render", "render", "check_coverage", "render_pair", "sparse_points", "stereo_cameras", "visible"]
+
+#: Base RGB albedo and texture contrast per material (``MATERIALS`` order, then asphalt).
+_ALBEDO = np.array(
+    [
+        [0.30, 0.42, 0.18],  # ground (grass)
+        [0.62, 0.30, 0.22],  # tiles
+        [0.56, 0.54, 0.50],  # gravel
+        [0.74, 0.71, 0.65],  # wall
+        [0.20, 0.36, 0.14],  # foliage
+        [0.36, 0.26, 0.18],  # bark
+        [0.34, 0.34, 0.36],  # asphalt (ground on a street)
+    ]
+)
+_CONTRAST = np.array([0.45, 0.40, 0.40, 0.30, 0.60, 0.30, 0.35])
+_ASPHALT = len(MATERIALS)
+_TABLE = 1024  # lattice period of the value noise (cells)
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """A pinhole camera, COLMAP conventions (PINHOLE model, cam_from_world).
+
+    Attributes
+    ----------
+    K : (3, 3) float64
+        Intrinsics ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, pixel-centre convention
+        of COLMAP (top-left pixel centre at (0.5, 0.5)).
+    R : (3, 3) float64
+        Rotation of cam_from_world.
+    t : (3,) float64
+        Translation of cam_from_world: ``x_cam = R @ x_world + t``.
+    width, height : int
+        Image size in pixels.
+    name : str
+        Image file name.
+    """
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    name: str = ""
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) projection centre in world (model) coordinates."""
+        return -self.R.T @ self.t
+
+    @property
+    def params(self) -> list[float]:
+        """COLMAP PINHOLE parameters ``[fx, fy, cx, cy]``."""
+        return [float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]), float(self.K[1, 2])]
+
+    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project (n, 3) points; returns (n, 2) pixel coordinates and (n,) depths."""
+        cam = np.asarray(xyz, np.float64) @ self.R.T + self.t
+        uvw = cam @ self.K.T
+        return uvw[:, :2] / uvw[:, 2:3], cam[:, 2]
+
+    def rays(self, uv: np.ndarray) -> np.ndarray:
+        """(n, 3) unit world directions of the rays through (n, 2) pixel coordinates."""
+        uv = np.asarray(uv, np.float64)
+        d = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(self.K).T
+        d = d @ self.R  # R.T @ d for row vectors
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def pixel_centres(self) -> np.ndarray:
+        """(height * width, 2) coordinates of every pixel centre, row-major."""
+        c, r = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+        return np.column_stack([c.ravel(), r.ravel()])
+
+
+def _rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation about the camera z (roll), x (pitch) and y (yaw) axes, radians."""
+    cz, sz = math.cos(roll), math.sin(roll)
+    cx, sx = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    return rz @ rx @ ry
+
+
+def _look_at(center: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """cam_from_world rotation looking from ``center`` at ``target``, image x along world +x."""
+    z = target - center
+    z /= np.linalg.norm(z)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def stereo_cameras(
+    target: np.ndarray,
+    *,
+    gsd: float = 0.25,
+    width: int = 1000,
+    height: int = 750,
+    focal: float | None = None,
+    base_to_height: float = 0.4,
+    max_rotation_deg: float = 2.0,
+    seed: int = 0,
+) -> tuple[PinholeCamera, PinholeCamera]:
+    """A convergent aerial stereo pair looking at ``target``, not rectified.
+
+    The cameras fly at ``focal * gsd`` above the target, ``base_to_height`` times
+    that apart along world x (left image first), aim at the target and are then
+    turned by a random roll, pitch and yaw of 0.5 to ``max_rotation_deg`` degrees
+    each (different per camera), so their epipolar lines are not image rows.
+
+    Parameters
+    ----------
+    target : (3,) float
+        Local point the pair looks at (the city centre on the ground).
+    gsd : float
+        Ground sample distance at nadir from the flying height, metres.
+    width, height : int
+        Image size in pixels.
+    focal : float, optional
+        Focal length in pixels, default ``width`` (53 degrees field of view).
+    base_to_height : float
+    max_rotation_deg : float
+    seed : int
+
+    Returns
+    -------
+    (PinholeCamera, PinholeCamera)
+        Named "left.png" and "right.png".
+    """
+    f = float(width if focal is None else focal)
+    flying = f * gsd
+    base = base_to_height * flying
+    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 10]))
+    target = np.asarray(target, np.float64)
+    cams = []
+    for side, name in ((-1, "left.png"), (1, "right.png")):
+        center = target + np.array([side * base / 2, 0.0, flying])
+        angles = rng.uniform(0.5, max_rotation_deg, 3) * rng.choice([-1.0, 1.0], 3)
+        R = _rotation(*np.radians(angles)) @ _look_at(center, target)
+        cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), name))
+    log.debug("stereo pair: flying height %.1f m, base %.1f m, focal %.0f px", flying, base, f)
+    return cams[0], cams[1]
+
+
+def check_coverage(city: SyntheticCity, cameras, margin_px: float = 2.0) -> None:
+    """Raise ValueError unless every camera sees the whole city area (ground to roofs)."""
+    zmin, zmax = city.z_range()
+    s = city.size
+    corners = np.array([[x, y, z] for x in (0, s) for y in (0, s) for z in (zmin, zmax)])
+    for cam in cameras:
+        uv, depth = cam.project(corners)
+        ok = (depth > 0) & (uv >= margin_px).all(axis=1)
+        ok &= (uv[:, 0] <= cam.width - margin_px) & (uv[:, 1] <= cam.height - margin_px)
+        if not ok.all():
+            raise ValueError(
+                f"a {s:.0f} m city does not fit image {cam.name} ({cam.width} x {cam.height} px); "
+                "use a smaller size, a larger gsd or larger images"
+            )
+
+
+# --------------------------------------------------------------------------- texture
+
+
+def _noise_tables(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Permutation (_TABLE,) int64, lattice values (_TABLE,) float64, octave rotations
+    (8, 3, 3) and offsets (8, 3) of the value noise, from the city seed."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 20]))
+    perm = rng.permutation(_TABLE).astype(np.int64)
+    values = rng.random(_TABLE)
+    q, _ = np.linalg.qr(rng.normal(size=(8, 3, 3)))
+    offsets = rng.uniform(0, 1000, (8, 3))
+    return perm, values, q, offsets
+
+
+def _value_noise(p: np.ndarray, perm: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Trilinear value noise in [0, 1] at (n, 3) lattice coordinates, smoothstep-blended."""
+    i = np.floor(p)
+    f = p - i
+    f = f * f * (3 - 2 * f)
+    i = i.astype(np.int64)
+    m = _TABLE - 1
+    hx = [perm[(i[:, 0] + k) & m] for k in (0, 1)]
+    hxy = [[perm[(hx[a] + i[:, 1] + b) & m] for b in (0, 1)] for a in (0, 1)]
+    out = 0.0
+    for a in (0, 1):
+        wa = f[:, 0] if a else 1 - f[:, 0]
+        for b in (0, 1):
+            wb = f[:, 1] if b else 1 - f[:, 1]
+            for c in (0, 1):
+                wc = f[:, 2] if c else 1 - f[:, 2]
+                out = out + wa * wb * wc * values[perm[(hxy[a][b] + i[:, 2] + c) & m]]
+    return out
+
+
+def _fbm(p: np.ndarray, seed: int, finest: float, coarsest: float = 8.0) -> np.ndarray:
+    """Multi-octave value noise in [0, 1] at (n, 3) points, wavelengths ``coarsest`` down
+    to about ``finest`` metres, each octave in its own rotated lattice."""
+    perm, values, rot, offsets = _noise_tables(seed)
+    n_oct = int(np.clip(math.ceil(math.log2(coarsest / finest)) + 1, 1, len(rot)))
+    total, weight, amp = np.zeros(len(p)), 0.0, 1.0
+    for k in range(n_oct):
+        wavelength = coarsest / 2**k
+        total += amp * _value_noise(p @ rot[k] / wavelength + offsets[k], perm, values)
+        weight += amp
+        amp *= 0.8
+    return total / weight
+
+
+def _albedo(city: SyntheticCity, xyz: np.ndarray, face: np.ndarray, finest: float) -> np.ndarray:
+    """(n, 3) RGB albedo of hit points ``xyz`` (local) on triangles ``face``."""
+    mat = city.face_material[face].astype(np.int64)
+    ground = mat == MATERIALS.index("ground")
+    mat[ground & city.streets.is_street(xyz[:, 0], xyz[:, 1])] = _ASPHALT
+    # a shifted copy of the noise per material, so roofs and ground differ
+    tex = _fbm(xyz + 37.0 * mat[:, None], city.seed, finest)
+    c = _CONTRAST[mat][:, None]
+    return _ALBEDO[mat] * city.face_tint[face] * (1 - c + 2 * c * tex[:, None])
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """Sun, ambient light and sensor model.
+
+    Attributes
+    ----------
+    azimuth, elevation : float
+        Sun direction in degrees (azimuth clockwise from north = local +y).
+    ambient : float
+        Fraction of light that reaches shadows.
+    gain : float
+        Digital numbers per unit radiance (255 * gain for a white sunlit surface).
+    noise_sigma : float
+        Standard deviation of the Gaussian sensor noise, digital numbers.
+    """
+
+    azimuth: float = 135.0
+    elevation: float = 50.0
+    ambient: float = 0.35
+    gain: float = 1.2
+    noise_sigma: float = 2.0
+
+    @property
+    def sun(self) -> np.ndarray:
+        """(3,) unit vector towards the sun."""
+        az, el = math.radians(self.azimuth), math.radians(self.elevation)
+        return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+
+
+@dataclass
+class Render:
+    """One rendered image.
+
+    Attributes
+    ----------
+    image : (height, width, 3) uint8
+        RGB.
+    xyz : (height, width, 3) float32
+        Local surface point seen through each pixel centre (NaN where no surface).
+    camera : PinholeCamera
+    seconds : float
+        Wall time of the render.
+    """
+
+    image: np.ndarray
+    xyz: np.ndarray
+    camera: PinholeCamera
+    seconds: float
+
+
+def _cast(city: SyntheticCity, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First hits of (n, 3) rays: distances (n,) float64 (inf on miss) and triangles (n,) int64."""
+    import open3d as o3d
+
+    rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
+    hit = city.raycaster().cast_rays(o3d.core.Tensor(rays))
+    t = hit["t_hit"].numpy().astype(np.float64)
+    face = hit["primitive_ids"].numpy().astype(np.int64)
+    face[~np.isfinite(t)] = -1
+    return t, face
+
+
+def _face_normals(city: SyntheticCity) -> np.ndarray:
+    v = city.vertices[city.faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def _in_shadow(city: SyntheticCity, xyz: np.ndarray, normal: np.ndarray, sun: np.ndarray) -> np.ndarray:
+    """(n,) True where the way from a surface point to the sun is blocked."""
+    import open3d as o3d
+
+    origins = xyz + 0.02 * normal + 0.02 * sun
+    rays = np.concatenate([origins, np.broadcast_to(sun, origins.shape)], axis=1).astype(np.float32)
+    return city.raycaster().test_occlusions(o3d.core.Tensor(rays)).numpy().astype(bool)
+
+
+def render(
+    city: SyntheticCity,
+    camera: PinholeCamera,
+    *,
+    lighting: Lighting = Lighting(),
+    texture_scale: float = 0.5,
+    seed: int = 0,
+) -> Render:
+    """Render one image of the city, one ray per pixel centre.
+
+    Parameters
+    ----------
+    city : SyntheticCity
+    camera : PinholeCamera
+        In the city's local frame.
+    lighting : Lighting
+    texture_scale : float
+        Finest texture wavelength in metres (about two pixels suits dense matching).
+    seed : int
+        Seed of the sensor noise.
+
+    Returns
+    -------
+    Render
+    """
+    start = time.perf_counter()
+    uv = camera.pixel_centres()
+    dirs = camera.rays(uv)
+    origin = np.broadcast_to(camera.center, dirs.shape)
+    t, face = _cast(city, origin, dirs)
+    hit = face >= 0
+    xyz = np.full(dirs.shape, np.nan)
+    xyz[hit] = origin[hit] + t[hit, None] * dirs[hit]
+    normal = _face_normals(city)[face[hit]]
+    normal *= -np.sign(np.einsum("ij,ij->i", normal, dirs[hit]))[:, None]  # face the camera
+    sun = lighting.sun
+    lit = ~_in_shadow(city, xyz[hit], normal, sun)
+    shade = lighting.ambient + (1 - lighting.ambient) * np.clip(normal @ sun, 0, None) * lit
+    radiance = np.zeros(dirs.shape)
+    radiance[hit] = _albedo(city, xyz[hit], face[hit], texture_scale) * shade[:, None]
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 30, int(sum(map(ord, camera.name)))]))
+    dn = 255.0 * lighting.gain * radiance + rng.normal(0.0, lighting.noise_sigma, radiance.shape)
+    image = np.clip(np.rint(dn), 0, 255).astype(np.uint8).reshape(camera.height, camera.width, 3)
+    seconds = time.perf_counter() - start
+    log.info("rendered %s (%d x %d px) in %.2f s", camera.name, camera.width, camera.height, seconds)
+    return Render(image, xyz.reshape(camera.height, camera.width, 3).astype(np.float32), camera, seconds)
+
+
+def render_pair(
+    city: SyntheticCity,
+    cameras: tuple[PinholeCamera, PinholeCamera],
+    *,
+    lighting: Lighting = Lighting(),
+    texture_scale: float = 0.5,
+    seed: int = 0,
+) -> list[Render]:
+    """Render both images of a stereo pair (see :func:`render`)."""
+    return [render(city, c, lighting=lighting, texture_scale=texture_scale, seed=seed) for c in cameras]
+
+
+def visible(city: SyntheticCity, camera: PinholeCamera, xyz: np.ndarray, tol: float = 0.02) -> np.ndarray:
+    """(n,) True where local points (n, 3) are inside the image and not hidden."""
+    uv, depth = camera.project(xyz)
+    inside = (depth > 0) & (uv[:, 0] >= 1) & (uv[:, 1] >= 1)
+    inside &= (uv[:, 0] <= camera.width - 1) & (uv[:, 1] <= camera.height - 1)
+    vec = xyz - camera.center
+    dist = np.linalg.norm(vec, axis=1)
+    t, _ = _cast(city, np.broadcast_to(camera.center, vec.shape), vec / dist[:, None])
+    return inside & (np.abs(t - dist) <= tol + 1e-5 * dist)
+
+
+def sparse_points(
+    city: SyntheticCity, cameras: tuple[PinholeCamera, PinholeCamera], n: int = 400, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points seen by both cameras, like a sparse SfM model.
+
+    Points are hit by rays through random (sub-pixel) positions of the first image
+    and kept when the second camera sees them too.
+
+    Returns
+    -------
+    xyz : (m, 3) float64
+        Local points, ``m <= n``.
+    uv : (2, m, 2) float64
+        Their exact projections in each image (COLMAP pixel convention).
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 40]))
+    first, second = cameras
+    uv0 = rng.uniform([2, 2], [first.width - 2, first.height - 2], (4 * n, 2))
+    dirs = first.rays(uv0)
+    origin = np.broadcast_to(first.center, dirs.shape)
+    t, face = _cast(city, origin, dirs)
+    xyz = origin + np.where(face >= 0, t, 0.0)[:, None] * dirs
+    keep = (face >= 0) & visible(city, second, xyz)
+    xyz = xyz[keep][:n]
+    uv = np.stack([cam.project(xyz)[0] for cam in cameras])
+    return xyz, uv
