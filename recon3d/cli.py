@@ -180,6 +180,34 @@ def report(out_dir):
     click.echo(f"wrote {write_report(out_dir)}")
 
 
+@cli.command()
+@click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
+@click.option("--format", "fmt", required=True, type=click.Choice(["cityjson", "cityjsonseq", "obj", "gltf", "glb"]), help="Target format.")
+@click.option("-o", "--output", "dest", type=click.Path(path_type=Path), help="File to write (default: OUT/buildings.<ext>).")
+@click.option("--overwrite", is_flag=True, help="Replace the file if it exists.")
+def export(out_dir, fmt, dest, overwrite):
+    """Convert the buildings of a run (OUT/buildings.city.json) to another format.
+
+    \b
+    Examples
+    --------
+      recon3d export out --format cityjsonseq
+      recon3d export out --format glb -o city.glb
+    """
+    from recon3d.errors import InputError
+    from recon3d.io import cityjson, gltf, obj
+
+    suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb"}[fmt]
+    dest = dest or out_dir / f"buildings{suffix}"
+    if dest.exists() and not overwrite:
+        raise InputError(f"{dest}: exists; use --overwrite to replace it")
+    city = cityjson.read_cityjson(out_dir / "buildings.city.json")
+    writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
+               "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
+    writers[fmt](city, dest)
+    click.echo(f"wrote {dest} ({len(city)} buildings)")
+
+
 @cli.group()
 def evaluate():
     """Measure products against references (ISPRS definitions)."""

@@ -30,7 +30,7 @@ import numpy as np
 import pyproj
 
 from recon3d.core.city import Building, CityModel, Solid
-from recon3d.core.geo import crs_authority, crs_name, crs_units
+from recon3d.core.geo import LocalFrame, crs_authority, crs_name, crs_units
 from recon3d.errors import CRSError
 from recon3d.io import atomic_path
 
@@ -41,7 +41,9 @@ __all__ = [
     "cityjson_dict",
     "crs_url",
     "quantisation_scale",
+    "read_cityjson",
     "write_cityjson",
+    "write_cityjsonseq",
 ]
 
 #: Metadata properties CityJSON 2.0 defines; no other key is allowed in "metadata".
@@ -335,3 +337,203 @@ def crs_url(crs: pyproj.CRS | None) -> str | None:
         log.warning("CityJSON: CRS %s has no EPSG/OGC code; referenceSystem omitted", crs_name(crs))
         return None
     return f"https://www.opengis.net/def/crs/{auth[0].upper()}/0/{auth[1]}"
+
+
+# --------------------------------------------------------------------------- CityJSONSeq
+
+
+def write_cityjsonseq(city: CityModel, path: str | Path, *, metadata: dict | None = None) -> None:
+    """Write ``city`` as CityJSON Text Sequences (``.city.jsonl``): a header line, then one
+    ``CityJSONFeature`` per building with its own vertex list, so large models stream.
+    """
+    doc = cityjson_dict(city, metadata)
+    header = {k: doc[k] for k in ("type", "version", "transform", "metadata")}
+    header.update(CityObjects={}, vertices=[])
+    vertices = np.asarray(doc["vertices"], dtype=np.int64).reshape(-1, 3)
+    lines = [json.dumps(header, ensure_ascii=False, separators=(",", ":"))]
+    for bid, obj in doc["CityObjects"].items():
+        used = sorted({i for g in obj["geometry"] for i in _flatten_indices(g["boundaries"])})
+        remap = {old: new for new, old in enumerate(used)}
+        obj = dict(obj, geometry=[dict(g, boundaries=_reindex(g["boundaries"], remap)) for g in obj["geometry"]])
+        feature = {"type": "CityJSONFeature", "id": bid, "CityObjects": {bid: obj}, "vertices": vertices[used].tolist()}
+        lines.append(json.dumps(feature, ensure_ascii=False, separators=(",", ":")))
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _flatten_indices(nested) -> list[int]:
+    if isinstance(nested, int):
+        return [nested]
+    return [i for item in nested for i in _flatten_indices(item)]
+
+
+def _reindex(nested, remap: dict[int, int]):
+    if isinstance(nested, int):
+        return remap[nested]
+    return [_reindex(item, remap) for item in nested]
+
+
+# --------------------------------------------------------------------------- reader
+
+
+def read_cityjson(path: str | Path, *, crs: pyproj.CRS | None = None) -> CityModel:
+    """Read a CityJSON 1.1 / 2.0 file or a CityJSONSeq (``.jsonl``) into a :class:`CityModel`.
+
+    Every ``Building`` becomes one :class:`Building` (its ``BuildingPart`` children
+    included): solids by LoD (``Solid`` geometries; the first shell), a footprint
+    (union of the plan views of its ground surfaces, or of all surfaces when there
+    are no semantics), and its attributes. ``ground_z``/``roof_z`` are taken from
+    the attributes recon3d writes, else from the geometry.
+
+    Raises
+    ------
+    InputError
+        Not CityJSON, an unsupported version, or no building.
+    """
+    from recon3d.errors import InputError
+    from recon3d.io import require_file
+
+    path = require_file(path, "CityJSON")
+    docs = _read_documents(path)
+    head = docs[0]
+    if head.get("type") != "CityJSON" or str(head.get("version")) not in ("1.1", "2.0"):
+        raise InputError(f"{path}: not CityJSON 1.1 or 2.0 (type {head.get('type')!r}, version {head.get('version')!r})")
+    scale = np.asarray(head.get("transform", {}).get("scale", [1, 1, 1]), dtype=np.float64)
+    translate = np.asarray(head.get("transform", {}).get("translate", [0, 0, 0]), dtype=np.float64)
+    file_crs = _crs_from_url(head.get("metadata", {}).get("referenceSystem"))
+    objects, vertex_blocks, offset = {}, [], 0
+    for doc in docs:
+        block = np.asarray(doc.get("vertices", []), dtype=np.float64).reshape(-1, 3)
+        for oid, obj in doc.get("CityObjects", {}).items():
+            objects[oid] = (obj, offset)
+        vertex_blocks.append(block)
+        offset += len(block)
+    world = np.concatenate(vertex_blocks) * scale + translate if offset else np.zeros((0, 3))
+    frame = LocalFrame.around(world.min(axis=0) if len(world) else np.zeros(3))
+    local = frame.to_local(world)
+    buildings = [
+        _building(oid, obj, base, objects, local, frame)
+        for oid, (obj, base) in objects.items()
+        if obj.get("type") == "Building"
+    ]
+    buildings = [b for b in buildings if b is not None]
+    if not buildings:
+        raise InputError(f"{path}: no Building with geometry in the file")
+    return CityModel(buildings, crs or file_crs, frame, {"source": str(path), "version": str(head.get("version"))})
+
+
+def _read_documents(path: Path) -> list[dict]:
+    from recon3d.errors import InputError
+
+    text = path.read_text(encoding="utf-8")
+    try:
+        if path.suffix == ".jsonl":
+            return [json.loads(line) for line in text.splitlines() if line.strip()]
+        return [json.loads(text)]
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+
+
+def _crs_from_url(url: str | None) -> pyproj.CRS | None:
+    if not url:
+        return None
+    code = url.rstrip("/").split("/")
+    try:
+        return pyproj.CRS.from_user_input(f"{code[-3]}:{code[-1]}")
+    except (pyproj.exceptions.CRSError, IndexError):
+        log.warning("CityJSON referenceSystem %s not understood; CRS left unset", url)
+        return None
+
+
+def _building(oid: str, obj: dict, base: int, objects: dict, local: np.ndarray, frame: LocalFrame) -> Building | None:
+    """One Building from a CityObject and its BuildingPart children (their vertex offsets applied)."""
+    import shapely
+
+    parts = [(obj, base)] + [objects[c] for c in obj.get("children", []) if c in objects]
+    solids: dict[str, Solid] = {}
+    plan_ground, plan_all = [], []
+    for part, offset in parts:
+        for geom in part.get("geometry", []):
+            surfaces, kinds = _surfaces(geom, offset)
+            for rings, kind in zip(surfaces, kinds, strict=True):
+                poly = _plan(local, rings)
+                if poly is not None:
+                    plan_all.append(poly)
+                    if kind == "GroundSurface":
+                        plan_ground.append(poly)
+            if geom.get("type") == "Solid" and surfaces:
+                lod = str(geom.get("lod"))
+                kinds = [k or _kind_by_normal(local, rings) for k, rings in zip(kinds, surfaces, strict=True)]
+                solids.setdefault(lod, _solid(local, surfaces, kinds))
+    plans = plan_ground or plan_all
+    if not plans:
+        return None
+    footprint = shapely.make_valid(shapely.union_all(plans))
+    polys = [g for g in getattr(footprint, "geoms", [footprint]) if g.geom_type == "Polygon"]
+    if not polys:
+        return None
+    footprint = shapely.affinity.translate(max(polys, key=lambda p: p.area), *frame.origin[:2])
+    attrs = dict(obj.get("attributes", {}))
+    z = frame.to_world(local[np.unique(np.concatenate([_flat(s) for s in _all_rings(parts)]))])[:, 2] if solids or plans else np.array([np.nan])
+    ground_z = float(attrs.pop("ground_z", np.min(z)))
+    roof_z = float(attrs.pop("roof_z", np.max(z)))
+    attrs.pop("height", None)
+    status, reason = attrs.pop("status", "ok"), attrs.pop("reason", None)
+    return Building(oid, shapely.orient_polygons(footprint), ground_z, roof_z, solids, status, reason, attrs)
+
+
+def _surfaces(geom: dict, offset: int) -> tuple[list[list[np.ndarray]], list[str | None]]:
+    """Surfaces (rings of vertex indices, offset applied) and their semantic types."""
+    kind = geom.get("type")
+    b = geom.get("boundaries", [])
+    sem = geom.get("semantics", {})
+    if kind == "Solid":
+        shells, values = b[:1], (sem.get("values") or [None])[:1]
+    elif kind in ("MultiSurface", "CompositeSurface"):
+        shells, values = [b], [sem.get("values")]
+    else:  # MultiSolid / CompositeSolid: first solid's outer shell
+        shells, values = ([b[0][0]], [(sem.get("values") or [[None]])[0][0]]) if b else ([], [])
+    types = [s.get("type") for s in sem.get("surfaces", [])]
+    surfaces, kinds = [], []
+    for shell, vals in zip(shells, values, strict=True):
+        for i, surface in enumerate(shell):
+            surfaces.append([np.asarray(r, dtype=np.int64) + offset for r in surface])
+            v = vals[i] if vals is not None and i < len(vals) else None
+            kinds.append(types[v] if v is not None and v < len(types) else None)
+    return surfaces, kinds
+
+
+def _kind_by_normal(local: np.ndarray, rings: list[np.ndarray]) -> str:
+    """Semantic type of a surface without semantics: facing down is ground, steep is wall."""
+    from recon3d.core.city import newell_normal
+
+    n = newell_normal(local[rings[0]])
+    nz = n[2] / (np.linalg.norm(n) or 1.0)
+    return "GroundSurface" if nz < -0.9 else "WallSurface" if abs(nz) < 0.17 else "RoofSurface"
+
+
+def _plan(local: np.ndarray, rings: list[np.ndarray]):
+    import shapely
+
+    if len(rings[0]) < 3:
+        return None
+    poly = shapely.Polygon(local[rings[0], :2], [local[r, :2] for r in rings[1:] if len(r) >= 3])
+    poly = shapely.make_valid(poly)
+    return poly if poly.area > 1e-6 else None
+
+
+def _solid(local: np.ndarray, surfaces: list[list[np.ndarray]], kinds: list[str]) -> Solid:
+    used = np.unique(np.concatenate([np.concatenate(s) for s in surfaces]))
+    remap = np.full(len(local), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return Solid(local[used], [[remap[r] for r in s] for s in surfaces], kinds)
+
+
+def _all_rings(parts):
+    for part, offset in parts:
+        for geom in part.get("geometry", []):
+            yield from _surfaces(geom, offset)[0]
+
+
+def _flat(surface: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(surface)

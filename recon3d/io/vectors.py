@@ -53,6 +53,8 @@ def read_footprints(
         The file has no CRS.
     """
     path = require_file(path, "footprints")
+    if _is_cityjson(path):
+        return _cityjson_footprints(path, crs)
     meta, geoms, fields = _read_layer(path, crs)
     geoms = shapely.force_2d(geoms)
     names = list(meta["fields"])
@@ -126,6 +128,28 @@ def write_features(
             driver="GeoJSON",
             layer_options={"RFC7946": "NO", "WRITE_BBOX": "YES"},
         )
+
+
+def _is_cityjson(path: Path) -> bool:
+    if path.suffix.lower() not in (".json", ".jsonl"):
+        return False
+    with path.open("rb") as f:
+        return b'"CityJSON' in f.read(4096)
+
+
+def _cityjson_footprints(path: Path, crs: pyproj.CRS) -> tuple[list[Footprint], list[str]]:
+    """Plan-view outlines of the buildings of a CityJSON file, in ``crs``."""
+    from recon3d.io.cityjson import read_cityjson
+
+    city = read_cityjson(path)
+    if city.crs is None:
+        raise CRSError(f"{path}: the CityJSON file has no referenceSystem in its metadata")
+    geoms = np.array([b.footprint for b in city], dtype=object)
+    if not _same_horizontal(city.crs, crs):
+        t = pyproj.Transformer.from_crs(_horizontal(city.crs), _horizontal(crs), always_xy=True)
+        geoms = shapely.transform(geoms, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
+    attrs = [dict(b.attributes, roof_z=b.roof_z, ground_z=b.ground_z) for b in city]
+    return [Footprint(b.id, g, a) for b, g, a in zip(city, geoms, attrs, strict=True)], []
 
 
 def _read_layer(path: Path, crs: pyproj.CRS) -> tuple[dict, np.ndarray, list]:

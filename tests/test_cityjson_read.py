@@ -1,0 +1,75 @@
+"""CityJSON reading (1.1, 2.0, sequences), the export command, CityJSON footprints as input."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conftest import CITYJSON_SCHEMA, shared
+from recon3d.cli import cli
+from recon3d.io.cityjson import read_cityjson, write_cityjson
+from recon3d.quality.meshcheck import check_solid
+
+
+@pytest.mark.parametrize("name, count, lods, invalid", [
+    ("multi_lod.json", 10, {"1.2", "1.3", "2.2"}, 0),
+    # CityJSON 1.1, BuildingParts folded into their Building; one solid has a face 1+ cm off its plane (val3dity 203)
+    ("DH_01_subs.city.json", 4, {"2"}, 1),
+    ("rotterdam_subset.json", 16, set(), 0),      # MultiSurface only: footprints, no solids
+])
+def test_reads_real_city_models(name, count, lods, invalid):
+    city = read_cityjson(shared(f"citymodels/{name}"))
+    assert len(city) == count
+    assert set().union(*(b.solids for b in city)) == lods
+    for b in city:
+        assert b.footprint.is_valid and b.footprint.area > 5
+        assert b.roof_z > b.ground_z
+    assert sum(bool(check_solid(s)) for b in city for s in b.solids.values()) == invalid
+
+
+def test_round_trip_keeps_geometry(tmp_path):
+    city = read_cityjson(shared("citymodels/multi_lod.json"))
+    write_cityjson(city, tmp_path / "a.city.json")
+    back = read_cityjson(tmp_path / "a.city.json")
+    for a, b in zip(city, back, strict=True):
+        va = a.solids["2.2"].to_trimesh().volume
+        assert b.solids["2.2"].to_trimesh().volume == pytest.approx(va, rel=1e-4)
+        assert a.footprint.symmetric_difference(b.footprint).area < 0.01
+
+
+def test_export_command_all_formats(delft_run, tmp_path):
+    import jsonschema
+    import trimesh
+
+    out = delft_run.out_dir
+    for fmt, name in (("cityjsonseq", "b.city.jsonl"), ("obj", "b.obj"), ("glb", "b.glb"), ("cityjson", "b.city.json")):
+        result = CliRunner().invoke(cli, ["export", str(out), "--format", fmt, "-o", str(tmp_path / name)])
+        assert result.exit_code == 0, result.output
+    seq = (tmp_path / "b.city.jsonl").read_text().splitlines()
+    assert len(seq) == 1 + len(delft_run.city)
+    feature_schema = json.loads(shared("schemas/cityjson-2.0.2/cityjsonfeature.min.schema.json").read_text())
+    for line in seq[1:]:
+        errors = list(jsonschema.Draft7Validator(feature_schema).iter_errors(json.loads(line)))
+        assert not errors, errors[0].message
+    doc = json.loads((tmp_path / "b.city.json").read_text())
+    assert not list(jsonschema.Draft7Validator(json.loads(shared(CITYJSON_SCHEMA).read_text())).iter_errors(doc))
+    back = read_cityjson(tmp_path / "b.city.jsonl")
+    assert len(back) == len(delft_run.city)
+    total = sum(b.solids["1"].to_trimesh().volume for b in delft_run.city)
+    assert sum(b.solids["1"].to_trimesh().volume for b in back) == pytest.approx(total, rel=1e-4)
+    glb = trimesh.load(tmp_path / "b.glb")
+    assert len(glb.geometry) >= len(delft_run.city)
+    again = CliRunner().invoke(cli, ["export", str(out), "--format", "glb", "-o", str(tmp_path / "b.glb")])
+    assert again.exit_code == 1 and "--overwrite" in again.output
+
+
+def test_cityjson_footprints_as_input(delft_run):
+    from recon3d.core.geo import parse_crs
+    from recon3d.io.vectors import read_footprints
+
+    fps, _ = read_footprints(delft_run.out_dir / "buildings.city.json", crs=parse_crs("EPSG:7415"))
+    assert len(fps) == len(delft_run.city)
+    for f, b in zip(fps, delft_run.city, strict=True):
+        assert f.polygon.symmetric_difference(b.footprint).area < 0.05
+        assert f.attributes["roof_z"] == pytest.approx(b.roof_z, abs=0.001)
