@@ -126,6 +126,7 @@ def write_features(
             geometry_type="Polygon" if all(g.geom_type == "Polygon" for g in geometries) else "Unknown",
             crs=crs.to_wkt() if crs is not None else None,
             driver="GeoJSON",
+            layer=Path(path).name.split(".")[0],  # not the temporary name: same input, same bytes
             layer_options={"RFC7946": "NO", "WRITE_BBOX": "YES"},
         )
 

@@ -254,7 +254,8 @@ def _rect_solid(kind: str, a: float, b: float, zb: float, ze: float, zr: float) 
     else:
         raise ValueError(f"unknown roof type {kind!r}")
     vertices = np.concatenate([base, eave, np.reshape(extra, (-1, 3))])
-    surfaces = [[np.array([3, 2, 1, 0])]] + [[np.array(w)] for w in walls] + [[np.array(r)] for r in roofs]
+    rings = [[3, 2, 1, 0], *walls, *roofs]
+    surfaces = [[np.array(r)] for r in rings]
     semantics = ["GroundSurface"] + ["WallSurface"] * len(walls) + ["RoofSurface"] * len(roofs)
     return Solid(vertices, surfaces, semantics)
 
@@ -293,7 +294,8 @@ def _plan_polygon(
     if plan == "L":
         poly = shapely.union(shapely.box(0, 0, s, w), shapely.box(0, 0, w, s))
     elif plan == "T":
-        poly = shapely.union(shapely.box(0, s - w, s, s), shapely.box((s - w) / 2, 0, (s + w) / 2, s))
+        stem = shapely.box((s - w) / 2, 0, (s + w) / 2, s)
+        poly = shapely.union(shapely.box(0, s - w, s, s), stem)
     else:
         raise ValueError(f"unknown plan {plan!r}")
     return shapely.affinity.translate(poly, -s / 2, -s / 2), s / 2, s / 2
@@ -318,7 +320,13 @@ def _ground_range(terrain: Terrain, poly: shapely.Polygon) -> tuple[float, float
 
 
 def _make_building(
-    bid: str, plan: str, roof: str, lot: shapely.Polygon, terrain: Terrain, frame: LocalFrame, rng: np.random.Generator
+    bid: str,
+    plan: str,
+    roof: str,
+    lot: shapely.Polygon,
+    terrain: Terrain,
+    frame: LocalFrame,
+    rng: np.random.Generator,
 ) -> BuildingTruth:
     """One building inside ``lot`` (local), standing on the terrain."""
     inner = lot.buffer(-_SETBACK, join_style="mitre")
@@ -327,7 +335,8 @@ def _make_building(
     for attempt in range(50):
         poly0, a, b = _plan_polygon(plan, roof, rng, room)
         angle = 0.0 if attempt > 40 or rng.random() < 0.4 else rng.uniform(-0.35, 0.35)
-        poly = shapely.affinity.translate(shapely.affinity.rotate(poly0, angle, use_radians=True, origin=(0, 0)), *center)
+        turned = shapely.affinity.rotate(poly0, angle, use_radians=True, origin=(0, 0))
+        poly = shapely.affinity.translate(turned, *center)
         if inner.contains(poly):
             break
     else:  # pragma: no cover - the axis-aligned attempts always fit
@@ -386,7 +395,8 @@ def _roof_top(roof, poly, angle, center, a, b, ze, zr) -> np.ndarray:
 
 def _building_kinds(n: int, rng: np.random.Generator) -> list[tuple[str, str]]:
     """(plan, roof) per building: every roof type, an L, a T and a courtyard first."""
-    first = [("rectangle", r) for r in ROOF_TYPES] + [("courtyard", "flat"), ("L", "flat"), ("T", "flat")]
+    first = [("rectangle", r) for r in ROOF_TYPES]
+    first += [("courtyard", "flat"), ("L", "flat"), ("T", "flat")]
     extra = rng.choice(len(ROOF_TYPES), size=max(0, n - len(first)), p=_ROOF_WEIGHTS)
     rest = [("rectangle", ROOF_TYPES[int(k)]) for k in extra]
     kinds = first[:n] + rest
@@ -418,7 +428,8 @@ def _tree_meshes(tree: TreeTruth, oz: float) -> list[tuple[trimesh.Trimesh, int]
     g, top, r = tree.ground_z - oz, tree.top_z - oz, tree.crown_radius
     depth = (top - g) * (0.75 if tree.crown == "cone" else 0.6)
     base = top - depth
-    trunk = trimesh.creation.cylinder(radius=0.25, segment=[[tree.x, tree.y, g - 0.5], [tree.x, tree.y, base + 0.3]], sections=8)
+    axis = [[tree.x, tree.y, g - 0.5], [tree.x, tree.y, base + 0.3]]
+    trunk = trimesh.creation.cylinder(radius=0.25, segment=axis, sections=8)
     if tree.crown == "cone":
         crown = trimesh.creation.cone(radius=r, height=depth, sections=16)
         crown.apply_translation([tree.x, tree.y, base])
@@ -430,7 +441,11 @@ def _tree_meshes(tree: TreeTruth, oz: float) -> list[tuple[trimesh.Trimesh, int]
 
 
 def _make_trees(
-    rng: np.random.Generator, size: float, terrain: Terrain, footprints: list[shapely.Polygon], oz: float
+    rng: np.random.Generator,
+    size: float,
+    terrain: Terrain,
+    footprints: list[shapely.Polygon],
+    oz: float,
 ) -> list[TreeTruth]:
     """Trees on free ground, clear of buildings (crown + 1.5 m) and of each other."""
     blocked = shapely.union_all(footprints) if footprints else shapely.Polygon()
@@ -448,7 +463,8 @@ def _make_trees(
         g = float(terrain.height(np.array([x]), np.array([y]))[0])
         height = rng.uniform(max(5.0, 1.6 * r), 15.0)
         crown = "cone" if rng.random() < 0.3 else "ellipsoid"
-        trees.append(TreeTruth(f"t{len(trees) + 1}", float(x), float(y), g + oz, g + height + oz, float(r), crown))
+        tid = f"t{len(trees) + 1}"
+        trees.append(TreeTruth(tid, float(x), float(y), g + oz, g + height + oz, float(r), crown))
     return trees
 
 
@@ -529,12 +545,6 @@ class SyntheticCity:
         ox, oy, _ = self.origin
         return (ox, oy, ox + self.size, oy + self.size)
 
-    def z_range(self) -> tuple[float, float]:
-        """Local (lowest terrain, highest surface) heights inside the city area."""
-        inside = (self.vertices[:, :2] >= 0).all(axis=1) & (self.vertices[:, :2] <= self.size).all(axis=1)
-        z = self.vertices[inside, 2]
-        return float(z.min()), float(z.max())
-
 
 def make_city(
     seed: int = 0,
@@ -577,7 +587,9 @@ def make_city(
     n_lots = streets.n**2
     n = n_lots if n_buildings is None else int(n_buildings)
     if n > n_lots:
-        raise ValueError(f"{n} buildings do not fit a {size} m city ({n_lots} lots); make it larger")
+        raise ValueError(
+            f"{n} buildings do not fit a {size} m city ({n_lots} lots); make it larger"
+        )
     rng = _rng(seed, 2)
     lots = sorted(rng.choice(n_lots, size=n, replace=False).tolist())
     kinds = _building_kinds(n, rng)
@@ -585,7 +597,8 @@ def make_city(
     for k, (lot, (plan, roof)) in enumerate(zip(lots, kinds, strict=True)):
         poly = streets.lot(lot % streets.n, lot // streets.n)
         buildings.append(_make_building(f"b{k + 1}", plan, roof, poly, terrain, frame, rng))
-    trees = _make_trees(_rng(seed, 3), size, terrain, [b.footprint_local for b in buildings], frame.origin[2])
+    footprints = [b.footprint_local for b in buildings]
+    trees = _make_trees(_rng(seed, 3), size, terrain, footprints, frame.origin[2])
     city = _assemble(seed, size, crs, frame, terrain, streets, buildings, trees)
     log.info(
         "synthetic city seed %d: %.0f m, %d buildings, %d trees, %d triangles",
@@ -616,7 +629,7 @@ def _assemble(seed, size, crs, frame, terrain, streets, buildings, trees) -> Syn
         sem = np.asarray(mesh.metadata["semantics"])
         roof_mat = GRAVEL if b.roof_type == "flat" else TILES
         mat = np.where(sem == "RoofSurface", roof_mat, WALL)
-        add(mesh.vertices, mesh.faces, mat, rng.uniform(0.75, 1.25, 3), k)
+        add(mesh.vertices, mesh.faces, mat, rng.uniform(0.75, 1.2) * rng.uniform(0.92, 1.08, 3), k)
     for k, t in enumerate(trees):
         tint = rng.uniform(0.8, 1.2, 3)
         for mesh, mat in _tree_meshes(t, frame.origin[2]):
@@ -690,7 +703,9 @@ def truth_dtm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) ->
     return city.ground_height(x, y).astype(np.float32)
 
 
-def checkpoints(city: SyntheticCity, spacing: float = 20.0) -> tuple[np.ndarray, list[str], list[str]]:
+def checkpoints(
+    city: SyntheticCity, spacing: float = 20.0
+) -> tuple[np.ndarray, list[str], list[str]]:
     """Check points: ground on a grid off buildings and trees, one on top of each roof.
 
     Ground points lie on a ``spacing`` grid inside the city, at least 2 m from every
@@ -716,7 +731,8 @@ def checkpoints(city: SyntheticCity, spacing: float = 20.0) -> tuple[np.ndarray,
     for t in city.trees:
         keep &= np.hypot(gx - t.x, gy - t.y) >= t.crown_radius + 2.0
     ox, oy, oz = city.origin
-    ground = np.column_stack([gx[keep] + ox, gy[keep] + oy, city.terrain.height(gx[keep], gy[keep]) + oz])
+    gx, gy = gx[keep], gy[keep]
+    ground = np.column_stack([gx + ox, gy + oy, city.terrain.height(gx, gy) + oz])
     roofs = np.array([b.top for b in city.buildings]).reshape(-1, 3)
     xyz = np.concatenate([ground, roofs])
     ids = [f"g{k + 1}" for k in range(len(ground))] + [f"{b.id}-roof" for b in city.buildings]
