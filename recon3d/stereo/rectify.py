@@ -149,7 +149,8 @@ def rectify_pair(
         return rectify_pair(b, a, image_b, image_a, max_parallax=max_parallax)
     size = (a.width, a.height)
     R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
-        a.K, a.dist, b.K, b.dist, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
+        a.K, a.dist.reshape(1, 5), b.K, b.dist.reshape(1, 5), size, R, T.reshape(3, 1),
+        flags=0, alpha=0,  # principal points may differ: convergent views keep their overlap
     )
     left, color, valid_left = _remap(image_a, a, R1, P1, size)
     right, _, valid_right = _remap(image_b, b, R2, P2, size)

@@ -32,6 +32,11 @@ def triangulate(pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarr
         depth precision, in [0, 1]) and ``intersection_angle`` (degrees).
     """
     valid = np.isfinite(disparity) & pair.valid_left
+    rows, cols = np.nonzero(valid)
+    xr = np.round(cols - disparity[rows, cols]).astype(np.int64)
+    inside = (xr >= 0) & (xr < pair.valid_right.shape[1])
+    inside[inside] = pair.valid_right[rows[inside], xr[inside]]
+    valid[rows[~inside], cols[~inside]] = False  # the match must land inside the right image
     d = np.where(valid, disparity, 0).astype(np.float32)
     rect = cv2.reprojectImageTo3D(d, pair.Q)[valid].astype(np.float64)
     cam = rect @ pair.R1  # R1 maps camera to rectified frame: its transpose maps back
