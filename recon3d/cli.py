@@ -134,7 +134,8 @@ def disparity(left, right, out_path, min_disparity, max_disparity, overwrite):
     result = match(images[0], images[1], MatchParams(min_disparity=min_disparity, max_disparity=max_disparity))
     write_raster(Raster(result.disparity, Affine.identity(), None, {"product": "disparity"}), out_path)
     valid = float(np.isfinite(result.disparity).mean()) * 100
-    click.echo(f"wrote {out_path}: {valid:.1f} % of pixels matched")
+    click.echo(f"wrote {out_path}: {result.params.get('matched_percent', valid):.1f} % of pixels matched, "
+               f"{valid:.1f} % with a disparity after gap filling")
 
 
 @cli.command()

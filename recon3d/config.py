@@ -61,13 +61,14 @@ class DsmConfig:
     ----------
     resolution : float or None
         Cell size in metres; None picks about twice the mean point spacing.
-    max_hole_area : float
+    max_hole_area : float or None
         Holes up to this area (m2) are filled from their neighbours; larger ones
-        (water, occlusions) stay NaN.
+        (water) stay NaN. None: 25 m2 for LiDAR, 200 m2 for stereo (ground hidden
+        from one image behind buildings).
     """
 
     resolution: float | None = None
-    max_hole_area: float = 25.0
+    max_hole_area: float | None = None
 
 
 @dataclass(frozen=True)
@@ -122,24 +123,92 @@ class BuildingsConfig:
     min_height : float
         nDSM height (m) above which a cell can belong to a building.
     min_area : float
-        Smallest building footprint kept (m2).
+        Smallest building footprint kept (m2); also the smallest courtyard kept.
     roof_percentile : float
         Percentile of the heights inside a footprint used as the LoD1 roof.
     footprint_shift : float
         Largest map-to-data shift (m) tolerated for given footprints.
+    split_height : float
+        Height jump (m) between neighbouring cells that separates two buildings of one
+        block (and a superstructure from its roof when it covers ``min_area``); 0 keeps
+        connected blocks whole.
+    grow_height : float
+        Lower roofs attached to a building (annexes, lean-tos) at least this high (m)
+        join it; equal to ``min_height`` to switch off.
+    min_width : float
+        Raised structures narrower than this (m) are not buildings (walls, hedges,
+        wires); the building mask is opened with a square of this size.
+    vegetation_min_height : float
+        Points at least this high (m) above the terrain are tested for vegetation.
+    vegetation_roughness : float
+        RMS (m) of a point's neighbours about their best plane above which, with a
+        multi-return echo or a green colour, the point is vegetation.
+    vegetation_neighbours : int
+        Neighbours of a point for its covariance features and its majority vote.
+    roof_roughness : float
+        RMS (m) of the DSM about a 3 x 3 cell plane below which a cell counts as smooth.
+    min_smooth_share : float
+        Share of smooth cells a blob needs to be a building (tree crowns are rough).
+    min_edge : float
+        Shortest edge (m) of a regularised outline.
+    regularize : bool
+        Regularise detected outlines (dominant directions, straight edges); False keeps
+        the Douglas-Peucker outlines.
     """
 
     min_height: float = 2.5
     min_area: float = 25.0
     roof_percentile: float = 90.0
     footprint_shift: float = 1.0
+    split_height: float = 2.0
+    grow_height: float = 2.0
+    min_width: float = 1.5
+    vegetation_min_height: float = 1.0
+    vegetation_roughness: float = 0.05
+    vegetation_neighbours: int = 10
+    roof_roughness: float = 0.15
+    min_smooth_share: float = 0.5
+    min_edge: float = 0.75
+    regularize: bool = True
 
 
 @dataclass(frozen=True)
 class LodConfig:
-    """Which levels of detail are built."""
+    """Which levels of detail are built, and how roofs are segmented (LoD1.3, LoD2.2).
+
+    Lengths are in metres and areas in m2 (converted to the CRS units by the
+    pipeline). See ``recon3d.buildings.roofs`` and ``recon3d.buildings.lod``.
+
+    Attributes
+    ----------
+    lods : tuple of str
+        Levels of detail to build among "1", "1.3" and "2.2". A "2.2" that cannot be
+        built falls back to "1.3", then "1", with a reason code.
+    plane_distance : float
+        Largest point-to-plane distance (m) of a roof plane's inliers (RANSAC threshold).
+    min_plane_area : float
+        Smallest roof plane kept (m2, plan view); with the point density it gives the
+        minimal number of points of a plane (never fewer than ``min_plane_points``).
+    min_plane_points : int
+        Fewest points of a roof plane.
+    max_planes : int
+        A roof needing more planes than this is "too_many_planes" (falls back to LoD1.3).
+    max_roof_rms : float
+        A LoD2.2 roof whose robust point-to-roof RMS (m) exceeds this falls back ("poor_fit").
+    lod13_step : float
+        Height difference (m) below which neighbouring LoD1.3 blocks are merged.
+    seed : int
+        Seed of the RANSAC plane search (Open3D); the same input gives the same planes.
+    """
 
     lods: tuple[str, ...] = ("1",)
+    plane_distance: float = 0.15
+    min_plane_area: float = 2.0
+    min_plane_points: int = 12
+    max_planes: int = 24
+    max_roof_rms: float = 0.5
+    lod13_step: float = 1.0
+    seed: int = 0
 
 
 @dataclass(frozen=True)

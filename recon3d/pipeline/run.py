@@ -225,8 +225,16 @@ def make_dsm(s: RunState) -> None:
         res, why = dsm_stage.choose_resolution(spacing, u)
     s.auto["dsm.resolution"] = {"value": res, "unit": u.name, "reason": why}
     s.auto["point_spacing"] = {"value": round(spacing, 3), "unit": u.name}
-    max_cells = int(u.area(cfg.max_hole_area) / res**2)
-    s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells)
+    stereo = s.scene is not None
+    hole_area = cfg.max_hole_area if cfg.max_hole_area is not None else (200.0 if stereo else 25.0)
+    s.auto["dsm.max_hole_area"] = {
+        "value": hole_area,
+        "reason": "config" if cfg.max_hole_area is not None else
+        ("stereo: ground hidden behind buildings, filled from the low side of its rim" if stereo
+         else "LiDAR: gaps between scan lines, filled from the mean of their rim"),
+    }
+    max_cells = int(u.area(hole_area) / res**2)
+    s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean")
 
 
 def classify_ground(s: RunState) -> None:
@@ -316,7 +324,11 @@ def evaluate_products(s: RunState) -> None:
 
         truth = read_raster(s.truth_dsm_path)
         tables.append(evaluate.against_raster(s.dsm, truth, product_name="DSM", reference_name="reference DSM", units=u))
-        s.report["dsm_filled_percent"] = round(100.0 * float(np.isfinite(s.dsm.data).mean()), 2)
+        x, y = s.dsm.cell_centers()
+        gx, gy = np.meshgrid(x, y)
+        covered = np.isfinite(truth.sample(gx.ravel(), gy.ravel(), bilinear=False)).reshape(s.dsm.shape)
+        # share of the cells the reference covers that the DSM fills
+        s.report["dsm_filled_percent"] = round(100.0 * float(np.isfinite(s.dsm.data[covered]).mean()), 2)
     if s.checkpoints is not None:
         products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
         tables += evaluate.against_checkpoints(products, s.checkpoints, u)

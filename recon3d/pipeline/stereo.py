@@ -39,12 +39,16 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
         a, b = scene.cameras[i], scene.cameras[j]
         pair = rectify_pair(a, b, _read(a.image_path), _read(b.image_path), max_parallax=config.max_parallax)
         dmin, dmax, why = disparity_range(pair, scene.sparse, max_count=config.max_disparities)
-        result = match(pair.left, pair.right, MatchParams(min_disparity=dmin, max_disparity=dmax))
+        # black borders outside the photos are nodata, not texture to match
+        left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
+        right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
+        result = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1))
         cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle)
         report["pairs"].append({
             "pair": pair.name,
             "vertical_parallax_px": pair.parallax,
             "disparity_range": {"value": [dmin, dmax], "reason": why},
+            "matched_percent": result.params.get("matched_percent"),
             "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[pair.valid_left]))), 1),
             "points": len(cloud),
         })

@@ -95,17 +95,20 @@ def grid_points(
     return out.reshape(shape)
 
 
-def fill_small_holes(data: np.ndarray, max_cells: int) -> np.ndarray:
+def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells that do not touch the border.
 
-    Each hole cell takes the mean of the valid cells on the hole's rim (its one-cell
-    dilation): holes in a DSM are small occlusions or gaps between scan lines, whose
-    best estimate is the surrounding surface. Larger or border-touching holes stay NaN.
+    Each hole cell takes one value of the valid cells on the hole's rim (its one-cell
+    dilation). ``rim="mean"`` suits LiDAR, whose holes are gaps between scan lines on
+    one surface. ``rim="low"`` (the rim's 25th percentile) suits stereo, whose large
+    holes are ground hidden from one image behind a building: their rim is part roof
+    edge, part ground. Larger or border-touching holes stay NaN.
 
     Parameters
     ----------
     data : (rows, cols) float
     max_cells : int
+    rim : {"mean", "low"}
 
     Returns
     -------
@@ -123,21 +126,28 @@ def fill_small_holes(data: np.ndarray, max_cells: int) -> np.ndarray:
     fill = keep[labels]
     if not fill.any():
         return out
-    rim = ndimage.grey_dilation(np.where(fill, labels, 0), size=3) * ~holes
-    rim_labels = rim.ravel()
+    rim_labels = (ndimage.grey_dilation(np.where(fill, labels, 0), size=3) * ~holes).ravel()
     values = np.nan_to_num(out).ravel()
-    sums = np.bincount(rim_labels, weights=values, minlength=n + 1)
     counts = np.bincount(rim_labels, minlength=n + 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        means = sums / counts
-    out[fill] = means[labels[fill]]
+    if rim == "low":
+        on = rim_labels > 0
+        order = np.lexsort((values[on], rim_labels[on]))  # by hole, then height
+        val = values[on][order]
+        start = np.concatenate([[0, 0], np.cumsum(counts[1:])])[: n + 1]  # first rim value of each hole in val
+        pick = np.clip(start + np.maximum(counts - 1, 0) // 4, 0, max(len(val) - 1, 0))
+        fills = np.where(counts > 0, val[pick] if len(val) else np.nan, np.nan)
+    else:
+        sums = np.bincount(rim_labels, weights=values, minlength=n + 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fills = sums / counts
+    out[fill] = fills[labels[fill]]
     return out
 
 
-def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int) -> Raster:
+def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int, rim: str = "mean") -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
-    Points classified as noise (7) are left out.
+    Points classified as noise (7) are left out; ``rim`` as in :func:`fill_small_holes`.
     """
     xyz = cloud.xyz
     c = cloud.classification
@@ -146,5 +156,5 @@ def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int) -> Ra
     lo, hi = cloud.bounds
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
     dsm = grid_points(xyz, transform, shape, reducer="max")
-    dsm = fill_small_holes(dsm, max_hole_cells)
+    dsm = fill_small_holes(dsm, max_hole_cells, rim=rim)
     return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": "highest point per cell"})

@@ -1,0 +1,1 @@
+"""Stereo: pair selection and rectification, dense matching, triangulation, fusion."""

@@ -1,0 +1,186 @@
+"""Benchmark of the dense matcher (recon3d.stereo.match): time, throughput, memory, accuracy.
+
+Cases, each run in its own subprocess so that the peak RSS (resource.getrusage) is its own:
+
+* ``cones``: Middlebury 2003 cones (../shared/data/stereo/middlebury_cones), disparities
+  0..64; bad-1 / bad-2 (% of non-occluded pixels with a ground truth whose error exceeds
+  1 / 2 px, invalid pixels counted as errors), mean absolute error over valid pixels,
+  density. Also the raw OpenCV StereoSGBM baseline with typical parameters.
+* ``synthetic``: a 2000 x 1500 random-texture pair of a sloping ground (disparity 20..60)
+  with three box "buildings" (70, 90, 110 px), searched over 128 disparities (0..128);
+  the same accuracy figures against its exact ground truth (occluded pixels excluded).
+
+Usage::
+
+    .venv/bin/python scripts/bench_match.py                 # everything
+    .venv/bin/python scripts/bench_match.py --case cones --engine census
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+CONES = ROOT.parent / "shared" / "data" / "stereo" / "middlebury_cones"
+
+
+def load_cones():
+    import rasterio
+
+    left = cv2.imread(str(CONES / "left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(CONES / "right.png"), cv2.IMREAD_GRAYSCALE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(CONES / "disp_left.tif") as src:
+            gt = src.read(1).astype(np.float32)
+    occlusion = cv2.imread(str(CONES / "occlusion.png"), cv2.IMREAD_GRAYSCALE)
+    if left is None or right is None or occlusion is None:
+        raise SystemExit(f"missing Middlebury cones data in {CONES}")
+    mask = (gt > 0) & (occlusion == 255)  # white = non-occluded; gt 0 = unknown
+    return left, right, gt, mask, (0, 64)
+
+
+def synthetic_pair(h: int = 1500, w: int = 2000, seed: int = 0):
+    """Textured pair from a right-image disparity map; left ground truth by z-buffered splat."""
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 1.2)
+    tex += 0.5 * cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 6.0)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    disp_right = 20.0 + 40.0 * yy / h
+    boxes = ((200, 300, 300, 400, 90), (800, 1200, 400, 300, 110), (1000, 200, 200, 600, 70))
+    for y0, x0, bh, bw, d in boxes:
+        disp_right[y0 : y0 + bh, x0 : x0 + bw] = d
+    right = cv2.remap(tex, xx + disp_right, yy, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    left = tex
+    # left ground truth: every right pixel lands at x + d in the left image; nearest wins
+    xl = np.rint(xx + disp_right).astype(np.int64)
+    ok = xl < w
+    flat = (yy.astype(np.int64) * w + xl)[ok]
+    gt = np.full(h * w, -np.inf, np.float32)
+    np.maximum.at(gt, flat, disp_right[ok])
+    gt = gt.reshape(h, w)
+    mask = np.isfinite(gt)
+    gt[~mask] = 0
+    u8 = lambda a: np.clip(np.rint(a), 0, 255).astype(np.uint8)  # noqa: E731
+    return u8(left), u8(right), gt, mask, (0, 128)
+
+
+def accuracy(disp: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict:
+    err = np.abs(disp - gt)[mask]
+    valid = np.isfinite(err)
+    err_all = np.where(valid, err, np.inf)
+    return {
+        "bad1_percent": round(100.0 * float((err_all > 1).mean()), 2),
+        "bad2_percent": round(100.0 * float((err_all > 2).mean()), 2),
+        "mae_px": round(float(err[valid].mean()), 3),
+        "density_percent": round(100.0 * float(valid.mean()), 1),
+    }
+
+
+def raw_sgbm(left, right, dmin, dmax):
+    """OpenCV StereoSGBM as usually configured (block 3, P1/P2 = 8/32 * block^2, uniqueness 10)."""
+    block = 3
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=dmin, numDisparities=16 * -(-(dmax - dmin) // 16), blockSize=block,
+        P1=8 * block * block, P2=32 * block * block, disp12MaxDiff=1, uniquenessRatio=10,
+        speckleWindowSize=100, speckleRange=2,
+    )
+    raw = sgbm.compute(left, right)
+    disp = raw.astype(np.float32) / 16.0
+    disp[raw < dmin * 16] = np.nan
+    return disp
+
+
+def run_case(case: str, engine: str, overrides: dict) -> dict:
+    sys.path.insert(0, str(ROOT))
+    from recon3d.stereo.match import MatchParams, match
+
+    left, right, gt, mask, (dmin, dmax) = load_cones() if case == "cones" else synthetic_pair()
+    h, w = left.shape
+    t = time.perf_counter()
+    if engine == "raw-sgbm":
+        disp = raw_sgbm(left, right, dmin, dmax)
+        seconds, info = time.perf_counter() - t, {}
+    else:
+        params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=engine, **overrides)
+        result = match(left, right, params)
+        seconds = time.perf_counter() - t
+        disp, info = result.disparity, result.params
+    ndisp = dmax - dmin
+    out = {
+        "case": case,
+        "engine": engine,
+        "overrides": overrides,
+        "size": f"{w}x{h}",
+        "disparities": ndisp,
+        "seconds": round(seconds, 2),
+        "mpix_disp_per_s": round(w * h * ndisp / 1e6 / seconds, 1),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 0),
+        **accuracy(disp, gt, mask),
+    }
+    if info:
+        out["searched"] = info["disparity_range_searched"]["value"]
+        out["stage_seconds"] = info["seconds"]
+    if case == "cones" and engine != "raw-sgbm":
+        out["unfilled"] = accuracy(result.unfilled, gt, mask)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--case", choices=("cones", "synthetic"))
+    parser.add_argument("--engine", choices=("census", "sgbm", "raw-sgbm"))
+    parser.add_argument(
+        "--set", default="{}", help='MatchParams overrides as JSON, e.g. \'{"paths": 4}\''
+    )
+    args = parser.parse_args()
+    if args.case and args.engine:
+        print(json.dumps(run_case(args.case, args.engine, json.loads(args.set))))
+        return
+    cases = [(c, e) for c in ("cones", "synthetic") for e in ("raw-sgbm", "sgbm", "census")
+             if (args.case in (None, c)) and (args.engine in (None, e))]
+    print(
+        f"{'case':10s} {'engine':9s} {'size':>10s} {'D':>4s} {'s':>6s} {'Mpx*D/s':>8s}"
+        f" {'RSS MB':>7s} {'bad1%':>6s} {'bad2%':>6s} {'MAE':>6s} {'dens%':>6s}"
+    )
+    for case, engine in cases:
+        proc = subprocess.run(
+            [sys.executable, __file__, "--case", case, "--engine", engine, "--set", args.set],
+            capture_output=True, text=True, check=False,
+        )
+        if proc.returncode:
+            print(f"{case} {engine}: failed\n{proc.stderr[-2000:]}")
+            continue
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(
+            f"{r['case']:10s} {r['engine']:9s} {r['size']:>10s} {r['disparities']:4d}"
+            f" {r['seconds']:6.2f} {r['mpix_disp_per_s']:8.1f} {r['peak_rss_mb']:7.0f}"
+            f" {r['bad1_percent']:6.2f} {r['bad2_percent']:6.2f} {r['mae_px']:6.3f}"
+            f" {r['density_percent']:6.1f}"
+        )
+        if "unfilled" in r:
+            u = r["unfilled"]
+            print(
+                f"{'':10s} {'unfilled':9s} {'':>10s} {'':>4s} {'':>6s} {'':>8s} {'':>7s}"
+                f" {u['bad1_percent']:6.2f} {u['bad2_percent']:6.2f} {u['mae_px']:6.3f}"
+                f" {u['density_percent']:6.1f}"
+            )
+        if "stage_seconds" in r:
+            print(f"{'':10s} stages: {r['stage_seconds']}, searched {r['searched']}")
+
+
+if __name__ == "__main__":
+    main()
