@@ -324,9 +324,7 @@ def evaluate_products(s: RunState) -> None:
 
         truth = read_raster(s.truth_dsm_path)
         tables.append(evaluate.against_raster(s.dsm, truth, product_name="DSM", reference_name="reference DSM", units=u))
-        x, y = s.dsm.cell_centers()
-        gx, gy = np.meshgrid(x, y)
-        covered = np.isfinite(truth.sample(gx.ravel(), gy.ravel(), bilinear=False)).reshape(s.dsm.shape)
+        covered = np.isfinite(evaluate.resample_max(truth, s.dsm))
         # share of the cells the reference covers that the DSM fills
         s.report["dsm_filled_percent"] = round(100.0 * float(np.isfinite(s.dsm.data[covered]).mean()), 2)
     if s.checkpoints is not None:

@@ -182,13 +182,31 @@ def _match_points(a: np.ndarray, b: np.ndarray, *, tolerance: float) -> np.ndarr
 
 
 def against_raster(product: Raster, reference: Raster, *, product_name: str, reference_name: str, units: Units) -> AccuracyReport:
-    """Product minus reference at the product's cell centres (reference sampled bilinearly).
+    """Product minus reference, cell by cell on the product's grid.
 
-    Cells where either is NaN are left out; ``n`` counts the compared cells.
+    The reference is resampled onto the product grid with the highest value per
+    product cell (``rasterio.warp.reproject``, ``Resampling.max``), the definition of a
+    DSM cell; point-sampling a finer reference would charge every building edge with a
+    wall's height. Cells where either is NaN are left out; ``n`` counts the compared cells.
     """
-    x, y = product.cell_centers()
-    gx, gy = np.meshgrid(x, y)
-    ref = reference.sample(gx.ravel(), gy.ravel()).reshape(product.shape)
+    ref = resample_max(reference, product)
     return AccuracyReport.from_errors(
         (product.data - ref).ravel(), product=product_name, reference=reference_name, metres_per_unit=units.vertical
     )
+
+
+def resample_max(source: Raster, grid: Raster) -> np.ndarray:
+    """(rows, cols) float32: ``source`` on the grid of ``grid``, highest value per cell, NaN outside."""
+    from rasterio.warp import Resampling, reproject
+
+    from recon3d.core.geo import to_rasterio_crs
+
+    out = np.full(grid.shape, np.nan, np.float32)
+    crs = to_rasterio_crs(grid.crs or source.crs)
+    reproject(
+        source.data.astype(np.float32), out,
+        src_transform=source.transform, src_crs=crs, src_nodata=np.nan,
+        dst_transform=grid.transform, dst_crs=crs, dst_nodata=np.nan,
+        resampling=Resampling.max if source.resolution < grid.resolution else Resampling.nearest,
+    )
+    return out
