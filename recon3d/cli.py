@@ -258,6 +258,59 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
             tmp.write_text(json.dumps(result, indent=2), encoding="utf-8")
 
 
+@evaluate.command("buildings")
+@click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
+@click.option("--reference", required=True, type=click.Path(path_type=Path), help="Reference footprints (Shapefile, GeoPackage, GeoJSON, CityJSON) or a provider-classified LAS/LAZ (class 6).")
+@click.option("--crs", help="CRS of a reference LAS/LAZ without one.")
+@click.option("--json", "json_path", type=click.Path(path_type=Path), help="Also write the numbers as JSON.")
+def evaluate_buildings(out_dir, reference, crs, json_path):
+    """Completeness, correctness and quality (area and object, ISPRS 50 % rule) and outline RMS of OUT's buildings.
+
+    Only the reference inside the run's data extent is scored.
+
+    \b
+    Examples
+    --------
+      recon3d evaluate buildings out --reference bduni_buildings.shp
+      recon3d evaluate buildings out --reference delft.laz --crs EPSG:7415
+    """
+    import json
+
+    import shapely
+
+    from recon3d.core.geo import crs_units, parse_crs
+    from recon3d.io.cityjson import read_cityjson
+    from recon3d.io.las import read_las
+    from recon3d.io.vectors import read_footprints
+    from recon3d.quality import buildings as building_quality
+
+    city = read_cityjson(out_dir / "buildings.city.json")
+    detected = [b.footprint for b in city if b.status == "ok"]
+    out_crs = city.crs or (parse_crs(crs) if crs else None)
+    if reference.suffix.lower() in (".las", ".laz"):
+        cloud = read_las(reference, crs=parse_crs(crs) if crs else None)
+        result = building_quality.evaluate_against_classes(detected, cloud, cloud.classification, units=crs_units(cloud.crs))
+    else:
+        refs, _ = read_footprints(reference, crs=out_crs)
+        extent = shapely.box(*shapely.MultiPolygon(detected).bounds) if detected else None
+        data = out_dir / "dsm.tif"
+        if data.exists():
+            from recon3d.io.geotiff import read_raster
+
+            extent = shapely.box(*read_raster(data).bounds)
+        polys = [f.polygon for f in refs if extent is None or f.polygon.within(extent)]
+        result = building_quality.evaluate_footprints(detected, polys, units=crs_units(out_crs))
+    for key in sorted(result):
+        value = result[key]
+        if isinstance(value, float | int):
+            click.echo(f"{key:<32} {value:.3f}" if isinstance(value, float) else f"{key:<32} {value}")
+    if json_path:
+        from recon3d.io import atomic_path
+
+        with atomic_path(json_path) as tmp:
+            tmp.write_text(json.dumps(result, indent=2, default=str), encoding="utf-8")
+
+
 class _StageProgress:
     """A progress bar over pipeline stages on a terminal; silent otherwise."""
 

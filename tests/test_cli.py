@@ -125,3 +125,17 @@ def test_existing_output_needs_overwrite(tmp_path):
 def test_bad_setting(tmp_path):
     out = tmp_path / "out"
     _assert_clean_failure(_run([shared(IGN), "-o", out, "--set", "dsm.resolutoin=1"]), out, "dsm.resolutoin")
+
+
+def test_evaluate_buildings_command(ign_run, tmp_path):
+    import json
+
+    from conftest import BDUNI
+
+    result = CliRunner().invoke(
+        cli, ["evaluate", "buildings", str(ign_run.out_dir), "--reference", str(shared(BDUNI)), "--json", str(tmp_path / "b.json")]
+    )
+    assert result.exit_code == 0, result.output
+    numbers = json.loads((tmp_path / "b.json").read_text())
+    assert numbers["n_reference"] == 6  # the BD Uni footprints inside the LiDAR tile
+    assert numbers["area_completeness"] >= 95.0 and numbers["object_completeness"] == 100.0

@@ -74,6 +74,8 @@ class RunState:
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
     is_ground: np.ndarray | None = None
+    vegetation: np.ndarray | None = None
+    point_classes: np.ndarray | None = None
     dtm_points: np.ndarray | None = None
     city: CityModel | None = None
     labels: np.ndarray | None = None
@@ -258,15 +260,29 @@ def make_dtm(s: RunState) -> None:
 
 def find_buildings(s: RunState) -> None:
     cfg, u = s.config.buildings, s.units
+    s.vegetation = detect.classify_vegetation(s.cloud, s.dtm, cfg, u)
+    share = detect.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
     if s.footprints is not None:
-        polygons = [f.polygon for f in s.footprints]
+        evidence = detect.building_evidence(s.ndsm, share, cfg, u)
+        polygons, shifts, support = detect.align_footprints(
+            [f.polygon for f in s.footprints], evidence, u.length(cfg.footprint_shift)
+        )
         ids = [f.id for f in s.footprints]
-        attrs = [dict(f.attributes, source="footprints") for f in s.footprints]
+        attrs = [
+            dict(f.attributes, source="footprints", shift_x=round(float(d[0]), 3), shift_y=round(float(d[1]), 3),
+                 building_support=None if not np.isfinite(v) else round(float(v), 3))
+            for f, d, v in zip(s.footprints, shifts, support, strict=True)
+        ]
+        no_building = [i for i, v in zip(ids, support, strict=True) if np.isfinite(v) and v < 0.5]
+        if no_building:
+            s.notes.append(f"{len(no_building)} footprints have no building under them: " + ", ".join(no_building[:20]))
+        if len(shifts):
+            s.auto["footprint_shift"] = {"value": np.round(np.median(shifts, axis=0), 3).tolist(),
+                                         "reason": "median map-to-data shift found by aligning footprints with the nDSM"}
     else:
-        vegetation = detect.vegetation_cells(s.cloud, s.dsm)
-        polygons = detect.detect_buildings(s.ndsm, vegetation, cfg, u)
+        polygons = detect.detect_buildings(s.ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
-        attrs = [{"source": "detected"} for _ in polygons]
+        attrs = [{"source": "detected", **_rounded(detect.blob_descriptors(p))} for p in polygons]
     s.labels = detect.label_footprints(polygons, s.dsm)
     heights = measure_heights(
         polygons, s.labels, s.dsm, s.dtm, percentile=cfg.roof_percentile, min_height=u.height(cfg.min_height)
@@ -277,6 +293,10 @@ def find_buildings(s: RunState) -> None:
         buildings.append(Building(ids[i], poly, heights.ground_z[i], heights.roof_z[i], attributes=attrs[i]))
     lo = s.cloud.bounds[0]
     s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)))
+
+
+def _rounded(values: dict) -> dict:
+    return {k: round(float(v), 3) for k, v in values.items()}
 
 
 def build_solids(s: RunState) -> None:
@@ -315,7 +335,21 @@ def rasterize_model(s: RunState) -> None:
 def evaluate_products(s: RunState) -> None:
     u = s.units
     tables = []
+    with_solid = np.array([False] + [bool(b.solids) for b in s.city])
+    s.point_classes = detect.point_classes(
+        s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid
+    )
     if s.reference_classes is not None:
+        from recon3d.quality import buildings as building_quality
+
+        height = s.cloud.xyz[:, 2] - s.dtm.sample(s.cloud.xyz[:, 0], s.cloud.xyz[:, 1])
+        s.report["buildings_vs_provider_area"] = building_quality.evaluate_against_classes(
+            [b.footprint for b in s.city if b.solids], s.cloud, s.reference_classes, point_classes=s.point_classes,
+            vegetation_truth=building_quality.vegetation_truth_proxy(
+                s.cloud, s.reference_classes, height, min_height=u.height(2.5)
+            ),
+            units=u,
+        )
         ref_ground = s.cloud.xyz[s.reference_classes == ASPRS.GROUND]
         tables.append(evaluate.against_points(s.dtm, ref_ground, product="DTM", reference="provider ground points", units=u))
         s.report["buildings_vs_provider"] = evaluate.building_coverage(s.cloud, s.reference_classes, s.labels, s.dsm)
@@ -432,18 +466,8 @@ def _read_constraints(s: RunState) -> tuple[list[np.ndarray], np.ndarray] | None
 
 
 def _classified_cloud(s: RunState) -> PointCloud:
-    """The input cloud with recon3d's classes: ground 2, building 6, other 1."""
-    classes = np.full(len(s.cloud), ASPRS.UNCLASSIFIED, np.uint8)
-    classes[s.is_ground] = ASPRS.GROUND
-    row, col = s.dsm.rowcol(s.cloud.xyz[:, 0], s.cloud.xyz[:, 1])
-    rows, cols = s.dsm.shape
-    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-    in_building = np.zeros(len(s.cloud), bool)
-    with_solid = np.array([False] + [bool(b.solids) for b in s.city])
-    in_building[ok] = with_solid[s.labels[row[ok], col[ok]]]
-    above = s.cloud.xyz[:, 2] - s.dtm.sample(s.cloud.xyz[:, 0], s.cloud.xyz[:, 1], bilinear=False)
-    classes[in_building & ~s.is_ground & (above >= s.units.height(s.config.buildings.min_height / 2))] = ASPRS.BUILDING
-    return s.cloud.with_attribute("classification", classes)
+    """The input cloud with recon3d's classes: ground 2, vegetation 5, building 6, other 1."""
+    return s.cloud.with_attribute("classification", s.point_classes)
 
 
 def _write_footprints(s: RunState, path: Path) -> None:
