@@ -201,7 +201,7 @@ class LodConfig:
         Seed of the RANSAC plane search (Open3D); the same input gives the same planes.
     """
 
-    lods: tuple[str, ...] = ("1",)
+    lods: tuple[str, ...] = ("1", "2.2")
     plane_distance: float = 0.15
     min_plane_area: float = 2.0
     min_plane_points: int = 12

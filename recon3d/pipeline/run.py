@@ -305,6 +305,10 @@ def build_solids(s: RunState) -> None:
     u = s.units
     lo, hi = s.cloud.bounds
     extent = shapely.box(lo[0], lo[1], hi[0], hi[1])
+    roof = ~s.is_ground & ~s.vegetation  # points that may lie on roofs
+    xyz = s.cloud.xyz[roof]
+    order = np.argsort(xyz[:, 0], kind="stable")  # x-sorted once: each building slices its bbox
+    xyz, xs = xyz[order], xyz[order, 0]
     for b in s.city:
         reason = None
         poly = lod.clean_footprint(b.footprint, u.length(0.01))
@@ -322,8 +326,17 @@ def build_solids(s: RunState) -> None:
             b.status, b.reason = "failed", reason
             continue
         b.footprint = poly
-        b.solids["1"] = lod.lod1_solid(poly, b.ground_z, b.roof_z, s.city.frame)
-    failed = [b.id for b in s.city if b.status != "ok"]
+        x0, y0, x1, y1 = poly.bounds
+        i0, i1 = np.searchsorted(xs, [x0, x1])
+        pts = xyz[i0:i1]
+        pts = pts[(pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
+        res = lod.build_lods(poly, pts, b.ground_z, b.roof_z, s.city.frame, s.config.lod, units=u)
+        b.solids.update(res.solids)
+        b.status, b.reason = res.status, res.reason
+        b.attributes.update(roof_type=res.roof_type, roof_planes=len(res.planes))
+        if np.isfinite(res.roof_rms):
+            b.attributes["roof_point_rms_m"] = round(float(res.roof_rms) * u.vertical, 3)
+    failed = [b.id for b in s.city if not b.solids]
     if failed:
         s.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
 
@@ -379,7 +392,7 @@ def evaluate_products(s: RunState) -> None:
     s.report["buildings"] = {
         "count": len(s.city),
         "with_solid": sum(bool(b.solids) for b in s.city),
-        "failed": {r: sum(b.reason == r for b in s.city) for r in sorted({b.reason for b in s.city if b.reason})},
+        "reasons": {r: sum(b.reason == r for b in s.city) for r in sorted({b.reason for b in s.city if b.reason})},
         "statuses": {k: statuses.count(k) for k in sorted(set(statuses))},
         "lods": {lod: sum(lod in b.solids for b in s.city) for lod in sorted({k for b in s.city for k in b.solids})},
     }
@@ -474,7 +487,9 @@ def _write_footprints(s: RunState, path: Path) -> None:
     u = s.units
     props = []
     for b in s.city:
-        p = {"id": b.id, "status": b.status, "reason": b.reason or "", "roof_type": "flat" if b.solids else ""}
+        lods = sorted(b.solids, key=float)
+        p = {"id": b.id, "status": b.status, "reason": b.reason or "", "lod": lods[-1] if lods else "",
+             "roof_type": b.attributes.get("roof_type", "") if b.solids else ""}
         p.update(ground_z=_num(b.ground_z), roof_z=_num(b.roof_z), height_m=_num(b.height * u.vertical))
         p.update({k: v for k, v in b.attributes.items() if isinstance(v, str | int | float) and k not in p})
         props.append(p)

@@ -142,7 +142,7 @@ def _png(image: np.ndarray, max_width: int = 800) -> str:
 def _buildings_section(out_dir: Path, report: dict) -> str:
     b = report.get("buildings", {})
     rows = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("statuses", {}).items())
-    rows += "".join(f"<tr><td class=l>no solid: {html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("failed", {}).items())
+    rows += "".join(f"<tr><td class=l>reason: {html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("reasons", {}).items())
     lods = b.get("lods", {})
     rows += "".join(f"<tr><td class=l>LoD {html.escape(k)}</td><td>{v}</td></tr>" for k, v in lods.items())
     table = f"<table><tr><th class=l>buildings</th><th>{b.get('count', 0)}</th></tr>{rows}</table>"
@@ -163,7 +163,7 @@ def _map_svg(path: Path, size: int = 600) -> str:
     for props, ring in rings:
         pts = " ".join(f"{(x - lo[0]) * scale:.1f},{(hi[1] - y) * scale:.1f}" for x, y in ring)
         err = props.get("roof_rms_m")
-        color = "#999" if props.get("status") != "ok" or err is None else _error_color(float(err))
+        color = "#999" if err is None else _error_color(float(err))
         label = html.escape(f"{props.get('id')}: {props.get('status')} {props.get('reason') or ''} roof RMS {err}")
         shapes.append(f'<polygon points="{pts}" fill="{color}" stroke="#333" stroke-width="0.5"><title>{label}</title></polygon>')
     h = (hi[1] - lo[1]) * scale

@@ -1,0 +1,494 @@
+"""Roof planes (buildings.roofs), LoD1.3 / LoD2.2 solids (buildings.lod) and roof accuracy
+(quality.roofs).
+
+Reference roofs come from real city models in ../shared/data/citymodels: their LoD2.2
+roof surfaces are sampled into an airborne-LiDAR-like point cloud (8-20 points/m2,
+5 cm noise, holes, a few wall points, ground around), the building is rebuilt from
+its footprint and the points, and the result is compared with the original.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import shapely
+
+from recon3d.buildings import lod
+from recon3d.buildings.roofs import RoofParams, roof_type, segment_roof
+from recon3d.config import LodConfig
+from recon3d.core.city import Solid
+from recon3d.core.geo import LocalFrame
+from recon3d.quality import roofs as roofq
+from recon3d.quality.meshcheck import check_solid
+
+from conftest import shared
+
+CITYMODELS = ("citymodels/multi_lod.json", "citymodels/DH_01_subs.city.json", "citymodels/rotterdam_subset.json")
+ALL_LODS = LodConfig(lods=("1", "1.3", "2.2"))
+#: CityGML roof type codes (used by the Den Haag model) whose type is unambiguous.
+CITYGML_ROOF_TYPES = {"1000": "flat", "1010": "shed", "1030": "gable", "1040": "hip", "1070": "pyramid"}
+
+
+# --------------------------------------------------------------------------- reference models
+
+
+def read_lod2(path) -> list[dict]:
+    """LoD2 / LoD2.2 buildings of a CityJSON 1.1 or 2.0 file (a small test-only reader).
+
+    Returns one dict per city object with a LoD2 geometry: ``id``, ``solid`` (a
+    :class:`Solid` in world coordinates; a MultiSurface keeps its surfaces), ``closed``,
+    ``footprint`` (union of the ground surfaces in plan), ``ground_z`` and
+    ``roof_type`` when the file states an unambiguous one.
+    """
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    t = doc.get("transform", {"scale": [1, 1, 1], "translate": [0, 0, 0]})
+    verts = np.asarray(doc["vertices"], dtype=np.float64) * t["scale"] + t["translate"]
+    out = []
+    for oid, obj in doc["CityObjects"].items():
+        for geom in obj.get("geometry", []):
+            if str(geom.get("lod")) not in ("2", "2.2"):
+                continue
+            sem = geom.get("semantics", {})
+            kinds = [s["type"] for s in sem.get("surfaces", [])]
+            if geom["type"] == "Solid":
+                shell, values = geom["boundaries"][0], sem["values"][0]
+            elif geom["type"] == "MultiSurface":
+                shell, values = geom["boundaries"], sem["values"]
+            else:
+                continue
+            surfaces = [[np.asarray(r) for r in face] for face in shell]
+            semantics = [kinds[v] if v is not None else "WallSurface" for v in values]
+            solid = Solid(verts, surfaces, semantics)
+            ground = [
+                shapely.Polygon(verts[f[0]][:, :2], [verts[r][:, :2] for r in f[1:]])
+                for f, s in zip(surfaces, semantics, strict=True)
+                if s == "GroundSurface"
+            ]
+            footprint = shapely.union_all([shapely.make_valid(g) for g in ground]) if ground else None
+            if footprint is not None and footprint.geom_type != "Polygon":
+                parts = [p for p in shapely.get_parts(footprint) if p.geom_type == "Polygon"]
+                footprint = max(parts, key=lambda p: p.area) if parts else None
+            ground_z = min(float(verts[f[0]][:, 2].min()) for f, s in zip(surfaces, semantics, strict=True) if s == "GroundSurface")
+            attrs = obj.get("attributes", {})
+            kind = CITYGML_ROOF_TYPES.get(str(attrs.get("roofType", "")))
+            if attrs.get("dak_type") in ("single horizontal", "horizontal"):
+                kind = "flat"
+            out.append(
+                {
+                    "id": oid,
+                    "solid": _compact(solid),
+                    "closed": geom["type"] == "Solid",
+                    "footprint": footprint,
+                    "ground_z": ground_z,
+                    "roof_type": kind,
+                }
+            )
+    return out
+
+
+def _compact(solid: Solid) -> Solid:
+    used = np.unique(np.concatenate([r for s in solid.surfaces for r in s]))
+    remap = np.full(len(solid.vertices), -1)
+    remap[used] = np.arange(len(used))
+    return Solid(solid.vertices[used], [[remap[r] for r in s] for s in solid.surfaces], list(solid.semantics))
+
+
+def sample_building(ref: dict, rng: np.random.Generator, *, density=None, noise=0.05) -> np.ndarray:
+    """An airborne-LiDAR-like cloud of one reference building (world coordinates).
+
+    Roofs at ``density`` points/m2 in plan (8-20 drawn at random when None) with
+    Gaussian height noise, two holes of 1-1.5 m radius (less on small buildings), walls at 1 point/m2, and
+    ground points in a 5 m ring around the footprint.
+    """
+    dens = float(rng.uniform(8, 20)) if density is None else density
+    mesh = ref["solid"].to_trimesh()
+    sem = np.asarray(mesh.metadata["semantics"])
+    tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
+    pts = []
+    for kind, per_area, plan in (("RoofSurface", dens, True), ("WallSurface", 1.0, False)):
+        t = tri[sem == kind]
+        if not len(t):
+            continue
+        cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        area = 0.5 * (np.abs(cross[:, 2]) if plan else np.linalg.norm(cross, axis=1))
+        count = rng.poisson(area * per_area)
+        idx = np.repeat(np.arange(len(t)), count)
+        r1, r2 = rng.random(len(idx)), rng.random(len(idx))
+        flip = r1 + r2 > 1
+        r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+        p = t[idx, 0] + r1[:, None] * (t[idx, 1] - t[idx, 0]) + r2[:, None] * (t[idx, 2] - t[idx, 0])
+        if kind == "RoofSurface":
+            top = roofq.roof_height_at(ref["solid"], p[:, :2])
+            p = p[p[:, 2] >= top - 0.01]
+        pts.append(p)
+    cloud = np.concatenate(pts)
+    cloud[:, 2] += rng.normal(0, noise, len(cloud))
+    fp = ref["footprint"]
+    x0, y0, x1, y1 = fp.bounds
+    radius = min(1.0, 0.1 * np.sqrt(fp.area))
+    for _ in range(2):
+        c = rng.uniform([x0, y0], [x1, y1])
+        cloud = cloud[np.hypot(cloud[:, 0] - c[0], cloud[:, 1] - c[1]) > radius * rng.uniform(1.0, 1.5)]
+    ring = fp.buffer(5.0).difference(fp)
+    gx0, gy0, gx1, gy1 = ring.bounds
+    g = rng.uniform([gx0, gy0], [gx1, gy1], (int(ring.envelope.area * dens), 2))
+    g = g[shapely.contains_xy(ring, g[:, 0], g[:, 1])]
+    ground = np.column_stack([g, ref["ground_z"] + rng.normal(0, noise, len(g))])
+    return np.concatenate([cloud, ground])
+
+
+def rebuild(ref: dict, cloud: np.ndarray, config=ALL_LODS):
+    """build_lods on a reference building; returns (result, frame, reference solid in the frame)."""
+    frame = LocalFrame.around(ref["solid"].vertices.min(axis=0))
+    fp = lod.clean_footprint(ref["footprint"], 0.01)
+    inside = shapely.contains_xy(fp, cloud[:, 0], cloud[:, 1])
+    roof_z = float(np.percentile(cloud[inside, 2], 90)) if inside.any() else float("nan")
+    result = lod.build_lods(fp, cloud, ref["ground_z"], roof_z, frame, config)
+    reference = Solid(frame.to_local(ref["solid"].vertices), ref["solid"].surfaces, ref["solid"].semantics)
+    return result, frame, reference
+
+
+@pytest.fixture(scope="module")
+def reference_buildings():
+    refs = []
+    for name in CITYMODELS:
+        refs += [dict(r, source=name) for r in read_lod2(shared(name)) if r["footprint"] is not None]
+    return refs
+
+
+@pytest.fixture(scope="module")
+def rebuilt(reference_buildings):
+    """Every reference building sampled and rebuilt once (seeded)."""
+    rng = np.random.default_rng(2024)
+    out = []
+    for ref in reference_buildings:
+        cloud = sample_building(ref, rng)
+        result, frame, reference = rebuild(ref, cloud)
+        local = frame.to_local(cloud)
+        inside = shapely.contains_xy(
+            shapely.transform(ref["footprint"], lambda c: c - np.asarray(frame.origin[:2])), local[:, 0], local[:, 1]
+        )
+        roof_pts = local[inside & (local[:, 2] > ref["ground_z"] - frame.origin[2] + 1.0)]
+        out.append({"ref": ref, "result": result, "reference": reference, "cloud": local, "roof_points": roof_pts})
+    return out
+
+
+# --------------------------------------------------------------------------- reference roofs
+
+#: Planes smaller than this (m2, plan view) are not counted in completeness/correctness:
+#: with min_plane_area = 2 m2 and 8-20 points/m2 (some of them lost to the holes) they
+#: cannot be found reliably.
+MIN_PLANE_AREA = 3.0
+
+
+def test_reference_roofs_rebuilt(rebuilt):
+    """Every reference building gets a valid solid; the roofs match the reference models.
+
+    Measured (this seed; 35 buildings of 3DBAG, Den Haag and Rotterdam): LoD2.2 for 34
+    (the 35th is a 0.15 m2 chimney-like part without points: LoD1 + too_few_points);
+    roof height RMS (ISPRS RMS_Z over corresponding planes) 0.000-0.041 m, median
+    0.005 m; point-to-roof RMS 0.06-0.14 m; |volume error| <= 1.1 %; planes >= 3 m2:
+    completeness 71/72, correctness 71/71 (all planes: 73/77 and 73/73). Seeds 1-3
+    give the same picture (RMS_Z <= 0.041 m, completeness 100 %, volume <= 0.9 %).
+    Over all grid points, step edges included, the height RMS is 0.1-0.6 m: on the
+    Rotterdam blocks with 4-5 m height jumps 1-3 % of the roof area lies on the wrong
+    side of a step wall (``misplaced_share``), which the ISPRS RMS_Z leaves to RMS_XY.
+    """
+    n22, heights, found, n_ref, correct, n_mod, volumes = 0, [], 0, 0, 0, 0, []
+    for item in rebuilt:
+        result = item["result"]
+        assert result.solids, item["ref"]["id"]
+        for lod_name, solid in result.solids.items():
+            assert check_solid(solid) == [], (item["ref"]["id"], lod_name)
+        if "2.2" not in result.solids:
+            assert result.reason in lod.LOD_REASONS
+            continue
+        n22 += 1
+        m = roofq.compare_roofs(
+            item["reference"], result.solids["2.2"], volume=item["ref"]["closed"], min_area=MIN_PLANE_AREA
+        )
+        heights.append(m["height_rms"])
+        found += m["n_found"]
+        n_ref += m["n_reference"]
+        correct += m["n_correct"]
+        n_mod += m["n_model"]
+        if item["ref"]["closed"]:
+            volumes.append(m["volume_error"])
+        assert result.roof_rms <= 0.25, item["ref"]["id"]
+    heights = np.array([h for h in heights if np.isfinite(h)])
+    assert n22 >= len(rebuilt) - 1
+    assert np.all(heights <= 0.25), heights.max()
+    assert found / n_ref >= 0.85, (found, n_ref)
+    assert correct / n_mod >= 0.90, (correct, n_mod)
+    assert np.max(np.abs(volumes)) <= 0.05
+
+
+def test_reference_roof_types(rebuilt):
+    """Roof types match where the reference states a clear one (Den Haag roofType codes,
+    3DBAG 'single horizontal'), on buildings of at least 10 m2."""
+    checked = 0
+    for item in rebuilt:
+        ref = item["ref"]
+        if ref["roof_type"] is None or ref["footprint"].area < 10.0 or "2.2" not in item["result"].solids:
+            continue
+        checked += 1
+        assert item["result"].roof_type == ref["roof_type"], ref["id"]
+    assert checked >= 6
+
+
+def test_roof_type_of_reference_planes(reference_buildings):
+    """roof_type on planes taken from the reference models themselves."""
+    from recon3d.buildings.roofs import RoofPlane
+
+    seen = {}
+    for ref in reference_buildings:
+        if ref["footprint"].area < 10.0:
+            continue
+        planes = []
+        for view in roofq.roof_planes(ref["solid"]):
+            c = np.asarray(view.footprint.centroid.coords)[0]
+            z = -(view.normal[:2] @ c + view.offset) / view.normal[2]
+            plane = np.append(view.normal, view.offset)
+            planes.append(RoofPlane(plane, np.zeros(0, int), 0.0, view.area, np.array([*c, z])))
+        kind = roof_type(planes)
+        if ref["roof_type"]:
+            assert kind == ref["roof_type"], ref["id"]
+        seen[kind] = seen.get(kind, 0) + 1
+    assert seen.get("flat", 0) >= 5 and seen.get("gable", 0) >= 3
+
+
+# --------------------------------------------------------------------------- synthetic roofs
+
+
+def _synthetic(fun, footprint, *, density=12.0, noise=0.05, seed=1, origin=(85000.0, 447000.0, 0.0)):
+    rng = np.random.default_rng(seed)
+    x0, y0, x1, y1 = footprint.bounds
+    n = int((x1 - x0) * (y1 - y0) * density)
+    xy = rng.uniform([x0, y0], [x1, y1], (n, 2))
+    z = fun(xy[:, 0], xy[:, 1]) + rng.normal(0, noise, n)
+    o = np.asarray(origin)
+    pts = np.column_stack([xy, z]) + o
+    return pts, shapely.transform(footprint, lambda c: c + o[:2]), LocalFrame.around(o)
+
+
+ROOFS = {
+    "gable": (lambda x, y: 10 - 0.6 * np.abs(x - 5), shapely.box(0, 0, 10, 20)),
+    "hip": (lambda x, y: 10 - 0.6 * np.maximum(np.abs(x - 5), np.abs(y - 10) - 5), shapely.box(0, 0, 10, 20)),
+    "pyramid": (lambda x, y: 10 - 0.6 * np.maximum(np.abs(x - 5), np.abs(y - 5)), shapely.box(0, 0, 10, 10)),
+    "shed": (lambda x, y: 8 + 0.3 * x, shapely.box(0, 0, 10, 20)),
+    "flat": (lambda x, y: 8 + 0 * x, shapely.box(0, 0, 10, 20)),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(ROOFS))
+def test_synthetic_roof_types_and_volumes(kind):
+    fun, fp = ROOFS[kind]
+    pts, fpw, frame = _synthetic(fun, fp)
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    assert result.status == "ok" and result.reason is None
+    assert result.roof_type == kind
+    solid = result.solids["2.2"]
+    assert check_solid(solid) == []
+    gx, gy = np.meshgrid(np.arange(0.05, fp.bounds[2], 0.1), np.arange(0.05, fp.bounds[3], 0.1))
+    truth = float(fun(gx, gy).sum() * 0.01)
+    assert abs(roofq.solid_volume(solid) / truth - 1) < 0.01
+    assert result.roof_rms < 0.07
+    kinds = {"gable": 7, "hip": 9, "shed": 6, "flat": 6}
+    if kind in kinds:  # ground, roofs and one wall per footprint edge: no sliver surfaces
+        assert len(solid.surfaces) == kinds[kind]
+
+
+def test_semantics_and_orientation():
+    fun, fp = ROOFS["gable"]
+    pts, fpw, frame = _synthetic(fun, fp)
+    solid = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS).solids["2.2"]
+    from recon3d.core.city import newell_normal
+
+    for rings, kind in zip(solid.surfaces, solid.semantics, strict=True):
+        n = newell_normal(solid.vertices[rings[0]])
+        n = n / np.linalg.norm(n)
+        if kind == "GroundSurface":
+            assert n[2] < -0.999
+        elif kind == "WallSurface":
+            assert abs(n[2]) < 1e-3
+        else:
+            assert n[2] > 0.5
+    # local frame: the solid sits near the origin, not at national-grid coordinates
+    assert np.abs(solid.vertices).max() < 1000
+
+
+def test_step_wall_between_flat_roofs():
+    """Two flat roofs 6 m apart in height meet at a vertical wall close to x = 5."""
+    fun = lambda x, y: np.where(x < 5, 12.0, 6.0)  # noqa: E731
+    pts, fpw, frame = _synthetic(fun, shapely.box(0, 0, 10, 20))
+    solid = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS).solids["2.2"]
+    walls = [
+        solid.vertices[r[0]]
+        for r, k in zip(solid.surfaces, solid.semantics, strict=True)
+        if k == "WallSurface" and np.ptp(frame.to_world(solid.vertices[r[0]])[:, 0]) < 0.5
+    ]
+    inner = [w for w in walls if np.all(np.abs(frame.to_world(w)[:, 0] - 85000 - 5) < 0.5)]
+    assert inner, "no step wall"
+    x = frame.to_world(np.concatenate(inner))[:, 0] - 85000
+    assert np.all(np.abs(x - 5) < 0.3)
+
+
+def test_determinism_and_order_independence():
+    fun, fp = ROOFS["hip"]
+    pts, fpw, frame = _synthetic(fun, fp)
+    a = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    b = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    c = lod.build_lods(fpw, pts[np.random.default_rng(7).permutation(len(pts))], 0.0, 9.0, frame, ALL_LODS)
+    for other in (b, c):
+        assert sorted(other.solids) == sorted(a.solids)
+        for key, solid in a.solids.items():
+            assert np.array_equal(solid.vertices, other.solids[key].vertices)
+            assert len(solid.surfaces) == len(other.solids[key].surfaces)
+            for s1, s2 in zip(solid.surfaces, other.solids[key].surfaces, strict=True):
+                assert all(np.array_equal(r1, r2) for r1, r2 in zip(s1, s2, strict=True))
+            assert solid.semantics == other.solids[key].semantics
+        assert [p.plane.tolist() for p in other.planes] == [p.plane.tolist() for p in a.planes]
+
+
+def test_segment_roof_seeded_planes():
+    """Planes are found, regularised (symmetric gable: equal slopes, opposite aspects) and
+    their inliers cover the roof."""
+    fun, fp = ROOFS["gable"]
+    pts, _, _ = _synthetic(fun, fp, origin=(0.0, 0.0, 0.0))
+    seg = segment_roof(pts, RoofParams(), footprint=fp)
+    assert len(seg.planes) == 2 and seg.coverage > 0.95
+    a, b = seg.planes
+    assert a.slope == pytest.approx(b.slope)
+    assert abs((a.azimuth - b.azimuth) % 360 - 180) < 1e-9
+    assert a.slope == pytest.approx(np.degrees(np.arctan(0.6)), abs=1.0)
+    assert seg.rms < 0.07
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _all_valid(result):
+    assert result.status in ("ok", "fallback", "failed")
+    if result.status != "ok":
+        assert result.reason in lod.LOD_REASONS
+    for solid in result.solids.values():
+        assert check_solid(solid) == []
+
+
+def test_handful_of_points():
+    fun, fp = ROOFS["gable"]
+    pts, fpw, frame = _synthetic(fun, fp)
+    result = lod.build_lods(fpw, pts[:6], 0.0, 9.0, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.status == "fallback" and result.reason == "too_few_points"
+    assert "1" in result.solids
+
+
+def test_no_points_and_no_height():
+    fun, fp = ROOFS["flat"]
+    _, fpw, frame = _synthetic(fun, fp)
+    result = lod.build_lods(fpw, np.zeros((0, 3)), 0.0, float("nan"), frame, ALL_LODS)
+    assert result.status == "failed" and result.reason == "no_points" and not result.solids
+
+
+def test_footprint_with_courtyard():
+    outer = shapely.box(0, 0, 30, 30)
+    fp = outer.difference(shapely.box(10, 10, 20, 20))
+    fun = lambda x, y: 6 + 0.5 * np.minimum.reduce([x, y, 30 - x, 30 - y]) * 0  # noqa: E731
+    pts, fpw, frame = _synthetic(fun, fp)
+    inside = shapely.contains_xy(fpw, pts[:, 0], pts[:, 1])
+    result = lod.build_lods(fpw, pts[inside], 0.0, 6.0, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.status == "ok"
+    ground = [s for s, k in zip(result.solids["2.2"].surfaces, result.solids["2.2"].semantics, strict=True)
+              if k == "GroundSurface"]
+    assert len(ground) == 1 and len(ground[0]) == 2  # outer ring and the courtyard
+    assert roofq.solid_volume(result.solids["2.2"]) == pytest.approx(6.0 * 800, rel=0.01)
+
+
+def test_collinear_and_duplicate_vertices():
+    fun, _ = ROOFS["gable"]
+    fp = shapely.Polygon([(0, 0), (5, 0), (5, 0), (10, 0), (10, 10), (10, 20), (10, 20), (0, 20), (0, 10)])
+    pts, fpw, frame = _synthetic(fun, fp)
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.status == "ok"
+
+
+def test_roof_of_forty_small_planes():
+    """A roof of 40 tilted 2.5 x 2 m tiles: too many planes for LoD2.2 -> LoD1.3 or a
+    valid LoD2.2, never an invalid mesh."""
+    rng = np.random.default_rng(3)
+    tilt = rng.uniform(-0.5, 0.5, (8, 5, 2))
+
+    def fun(x, y):
+        i = np.clip((x / 2.5).astype(int), 0, 7)
+        j = np.clip((y / 2.0).astype(int), 0, 4)
+        return 8 + tilt[i, j, 0] * (x - 2.5 * i) + tilt[i, j, 1] * (y - 2.0 * j) + (i + j) % 3
+
+    pts, fpw, frame = _synthetic(fun, shapely.box(0, 0, 20, 10), density=20)
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.solids
+
+
+@pytest.mark.parametrize(
+    "fp, height", [(shapely.box(0, 0, 2, 2), 1.0), (shapely.box(0, 0, 12, 12), 300.0), (shapely.box(0, 0, 0.3, 40), 5.0)]
+)
+def test_tiny_tall_and_thin_buildings(fp, height):
+    fun = lambda x, y: height + 0.1 * x  # noqa: E731
+    pts, fpw, frame = _synthetic(fun, fp, density=15)
+    result = lod.build_lods(fpw, pts, 0.0, height, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.solids
+
+
+def test_degenerate_footprint():
+    frame = LocalFrame()
+    line = shapely.Polygon([(0, 0), (10, 0), (20, 0)])
+    result = lod.build_lods(line, np.zeros((0, 3)), 0.0, 5.0, frame, ALL_LODS)
+    assert result.status == "failed" and result.reason == "degenerate_footprint"
+
+
+def test_lod_config_defaults_roundtrip():
+    cfg = LodConfig()
+    assert cfg.plane_distance > 0 and cfg.max_planes >= 10
+    params = RoofParams.from_config(cfg)
+    assert params.distance == cfg.plane_distance and params.seed == cfg.seed
+
+
+# --------------------------------------------------------------------------- real LiDAR
+
+
+def _lidar_buildings(state):
+    xyz = state.cloud.xyz
+    for b in state.city.buildings:
+        x0, y0, x1, y1 = b.footprint.bounds
+        m = (xyz[:, 0] >= x0) & (xyz[:, 0] <= x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1)
+        yield b, lod.build_lods(b.footprint, xyz[m], b.ground_z, b.roof_z, state.city.frame, ALL_LODS, units=state.units)
+
+
+@pytest.mark.parametrize("fixture", ["delft_run", "ign_footprints_run"])
+def test_real_lidar_buildings(fixture, request):
+    """Every building gets a solid or a reason, all solids are valid, LoD2.2 roofs fit
+    their points (robust RMS, points more than 1 m off left out) within 0.3 m.
+
+    Measured at the time of writing (detection is still changing): Delft 9 of 11 LoD2.2
+    (one too_many_planes, one low_coverage: LoD1.3), robust roof RMS 0.06-0.23 m; IGN
+    village 6/6 LoD2.2 among the footprints with points (34 lie outside the data),
+    0.04-0.10 m. The plain RMS over all roof points is 0.04-1.7 m: 0-27 % of them lie
+    more than 1 m off the roof (overhanging trees, chimneys, wall points).
+    """
+    state = request.getfixturevalue(fixture)
+    n22 = 0
+    for b, result in _lidar_buildings(state):
+        _all_valid(result)
+        if not result.solids:
+            assert result.reason in ("no_points", "too_low", "degenerate_footprint"), b.id
+            continue
+        if "2.2" in result.solids:
+            n22 += 1
+            assert result.roof_rms <= 0.3 / state.units.vertical, b.id
+    assert n22 >= 5
