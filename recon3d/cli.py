@@ -209,6 +209,36 @@ def export(out_dir, fmt, dest, overwrite):
     click.echo(f"wrote {dest} ({len(city)} buildings)")
 
 
+@cli.command()
+@click.argument("path", metavar="FILE", type=click.Path(path_type=Path))
+@click.option("--planarity", default=0.01, show_default=True, help="Largest distance (CRS units) of a vertex to its face's plane.")
+def validate(path, planarity):
+    """Check every solid of a CityJSON file the way val3dity does (closed, 2-manifold,
+    outward, planar faces, no degenerate face, positive volume); exit 1 if any fails.
+
+    \b
+    Examples
+    --------
+      recon3d validate out/buildings.city.json
+    """
+    from recon3d.io.cityjson import read_cityjson
+    from recon3d.quality.meshcheck import check_solid
+
+    city = read_cityjson(path)
+    n_solids = n_bad = 0
+    for b in city:
+        for lod, solid in sorted(b.solids.items()):
+            n_solids += 1
+            issues = check_solid(solid, planarity_tol=planarity)
+            if issues:
+                n_bad += 1
+                text = "; ".join(f"{i.code} {i.name}" + (f" (surface {i.surface})" if i.surface is not None else "") for i in issues[:5])
+                click.echo(f"{b.id} LoD {lod}: {text}")
+    click.echo(f"{n_solids - n_bad} of {n_solids} solids valid in {len(city)} buildings")
+    if n_bad:
+        sys.exit(1)
+
+
 @cli.group()
 def evaluate():
     """Measure products against references (ISPRS definitions)."""

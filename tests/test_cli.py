@@ -139,3 +139,13 @@ def test_evaluate_buildings_command(ign_run, tmp_path):
     numbers = json.loads((tmp_path / "b.json").read_text())
     assert numbers["n_reference"] == 6  # the BD Uni footprints inside the LiDAR tile
     assert numbers["area_completeness"] >= 95.0 and numbers["object_completeness"] == 100.0
+
+
+def test_validate_command(delft_run):
+    ok = CliRunner().invoke(cli, ["validate", str(delft_run.out_dir / "buildings.city.json")])
+    assert ok.exit_code == 0 and "solids valid" in ok.output
+    n = sum(len(b.solids) for b in delft_run.city)
+    assert f"{n} of {n} solids valid" in ok.output
+    # the Den Haag sample has one face 1+ cm off its plane: found, exit 1
+    bad = CliRunner().invoke(cli, ["validate", str(shared("citymodels/DH_01_subs.city.json"))])
+    assert bad.exit_code == 1 and "203 NON_PLANAR_POLYGON_DISTANCE_PLANE" in bad.output
