@@ -158,3 +158,14 @@ def test_checkpoints_report(tmp_path, delft_run):
     assert roof["n"] == 50 and roof["nmad"] <= 0.3
     report = json.loads((s.out_dir / "report.json").read_text())
     assert any(t["reference"] == "check points (roof)" and t["product"] == "model DSM" for t in report["accuracy"])
+
+
+def test_same_input_same_bytes(ign_run, tmp_path):
+    """Products are byte-identical run to run (run.json and report.html hold timings)."""
+    from recon3d.pipeline.run import run
+
+    again = run(shared("lidar/ign_village_2154.laz"), tmp_path / "again")
+    for name in CONTRACT:
+        if name not in ("run.json",):
+            a, b = (ign_run.out_dir / name).read_bytes(), (again.out_dir / name).read_bytes()
+            assert a == b, name
