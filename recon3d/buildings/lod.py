@@ -6,7 +6,7 @@ courtyards included. LoD1.3 (one flat height per roof part) and LoD2.2 (roof pla
 step walls) are assembled from a planar partition of the footprint, see the section
 below :func:`lod1_solid`; :func:`build_lods` builds them with the fallback chain
 LoD2.2 -> LoD1.3 -> LoD1. Solids are built in the city model's local frame so that
-float32 consumers (glTF, manifold3d) keep millimetres.
+float32 consumers (glTF, OBJ importers) keep millimetres.
 """
 
 from __future__ import annotations
