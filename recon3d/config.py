@@ -205,7 +205,7 @@ class LodConfig:
     plane_distance: float = 0.15
     min_plane_area: float = 2.0
     min_plane_points: int = 12
-    max_planes: int = 24
+    max_planes: int = 60
     max_roof_rms: float = 0.5
     lod13_step: float = 1.0
     seed: int = 0

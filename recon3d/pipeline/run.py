@@ -75,6 +75,7 @@ class RunState:
     model_dsm: Raster | None = None
     is_ground: np.ndarray | None = None
     vegetation: np.ndarray | None = None
+    vegetation_share: np.ndarray | None = None
     point_classes: np.ndarray | None = None
     dtm_points: np.ndarray | None = None
     city: CityModel | None = None
@@ -262,6 +263,7 @@ def find_buildings(s: RunState) -> None:
     cfg, u = s.config.buildings, s.units
     s.vegetation = detect.classify_vegetation(s.cloud, s.dtm, cfg, u)
     share = detect.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
+    s.vegetation_share = share
     if s.footprints is not None:
         evidence = detect.building_evidence(s.ndsm, share, cfg, u)
         polygons, shifts, support = detect.align_footprints(
@@ -378,12 +380,13 @@ def evaluate_products(s: RunState) -> None:
         products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
         tables += evaluate.against_checkpoints(products, s.checkpoints, u)
     roofs = s.dsm.data - s.model_dsm.data
-    on_buildings = (s.labels > 0) & np.isfinite(roofs)
+    # cells whose top is a tree crown over a roof measure the tree, not the model
+    on_buildings = (s.labels > 0) & np.isfinite(roofs) & ~(np.nan_to_num(s.vegetation_share) > 0.5)
     from recon3d.core.accuracy import AccuracyReport
 
     tables.append(
         AccuracyReport.from_errors(
-            -roofs[on_buildings], product="model DSM", reference="measured DSM on buildings", metres_per_unit=u.vertical
+            -roofs[on_buildings], product="model DSM", reference="measured DSM on roofs", metres_per_unit=u.vertical
         )
     )
     s.report["accuracy"] = [t.to_dict() for t in tables]
