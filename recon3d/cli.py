@@ -47,7 +47,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 @cli.command()
-@click.argument("input_path", metavar="INPUT", type=click.Path(path_type=Path))
+@click.argument("input_path", metavar="INPUT...", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @click.option("--crs", help="CRS of an input without one, e.g. EPSG:7415.")
 @click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
@@ -59,7 +59,8 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.pass_context
 def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, altimetry, config_path, overwrite, overrides):
-    """Reconstruct INPUT (a LAS/LAZ or PLY point cloud, or a stereo scene folder) into OUT.
+    """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
+    or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
 
     A scene folder holds images/, a COLMAP model in sparse/ and optionally
     georef.json {"crs": "EPSG:N", "offset": [x0, y0, z0]} (world = model + offset).
@@ -75,6 +76,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, alti
       recon3d run delft.laz --crs EPSG:7415 -o out
       recon3d run village.laz --footprints bati.shp --checkpoints gcp.csv -o out
       recon3d run city.laz -o out --set dsm.resolution=0.5 --overwrite
+      recon3d run img1.tif img2.tif -o out
     """
     from recon3d.config import PipelineConfig
     from recon3d.core.geo import parse_crs
@@ -85,7 +87,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, alti
     user_crs = parse_crs(crs) if crs else None
     with _StageProgress(enabled=not ctx.obj["quiet"]) as progress:
         state = run_pipeline(
-            input_path,
+            tuple(input_path),
             out_dir,
             crs=user_crs,
             footprints=footprints,

@@ -64,6 +64,7 @@ class RunState:
     truth_dsm_path: Path | None = None
     constraints: np.ndarray | None = None
     scene: Any = None
+    satellite_paths: tuple[Path, Path] | None = None
     cloud: PointCloud | None = None
     units: Units | None = None
     footprints: list[vectors.Footprint] | None = None
@@ -87,7 +88,7 @@ class RunState:
 
 
 def run(
-    input_path: str | Path,
+    input_path: str | Path | tuple,
     out_dir: str | Path,
     *,
     crs: pyproj.CRS | None = None,
@@ -104,8 +105,9 @@ def run(
 
     Parameters
     ----------
-    input_path : path-like
-        LAS/LAZ or PLY point cloud.
+    input_path : path-like or pair of path-likes
+        LAS/LAZ or PLY point cloud, a frame-stereo scene folder, or two GeoTIFFs with
+        RPCs (satellite stereo).
     out_dir : path-like
         Output folder (see DESIGN.md for its contract).
     crs : pyproj.CRS, optional
@@ -133,8 +135,18 @@ def run(
         raise InputError(f"{out_dir}: output folder exists and is not empty; use --overwrite to replace it")
     work_dir = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
     shutil.rmtree(work_dir, ignore_errors=True)
+    pair = None
+    if isinstance(input_path, tuple | list):
+        if len(input_path) == 1:
+            input_path = input_path[0]
+        elif len(input_path) == 2:
+            pair = tuple(Path(p) for p in input_path)
+            input_path = pair[0]
+        else:
+            raise InputError(f"expected one input or two satellite images, got {len(input_path)} inputs")
     state = RunState(
         input_path=Path(input_path),
+        satellite_paths=pair,
         out_dir=out_dir,
         work_dir=work_dir,
         config=config or PipelineConfig(),
@@ -175,7 +187,11 @@ def read_inputs(s: RunState) -> None:
     from recon3d.io.colmap import is_scene_folder, read_scene
 
     suffix = s.input_path.suffix.lower()
-    if is_scene_folder(s.input_path):
+    if s.satellite_paths is not None:
+        from recon3d.io.rpc import read_rpc_camera
+
+        s.scene = [read_rpc_camera(p) for p in s.satellite_paths]
+    elif is_scene_folder(s.input_path):
         s.scene = read_scene(s.input_path, crs=s.crs)
         s.units = crs_units(s.scene.crs, source=str(s.input_path))
     elif suffix in (".las", ".laz"):
@@ -195,13 +211,37 @@ def read_inputs(s: RunState) -> None:
 
 
 def match_stereo(s: RunState) -> None:
-    """Dense matching of a scene folder into the point cloud (nothing to do for clouds)."""
+    """Dense matching of a scene folder or an RPC pair into the point cloud (nothing to do for clouds)."""
     if s.scene is None:
         return
-    from recon3d.pipeline.stereo import dense_cloud
+    if s.satellite_paths is not None:
+        s.cloud, s.auto["stereo"] = _satellite_cloud(s)
+    else:
+        from recon3d.pipeline.stereo import dense_cloud
 
-    s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo)
+        s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo)
     _read_side_inputs(s)
+
+
+def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
+    """RPC pair to a cloud in the scene's UTM zone (or the CRS given with --crs)."""
+    import rasterio
+
+    from recon3d.stereo.satellite import dense_cloud_rpc
+
+    a, b = s.scene
+    images = []
+    for cam in (a, b):
+        with rasterio.open(cam.image_path) as src:
+            images.append(src.read(1, masked=True).astype(np.float32).filled(np.nan))
+    cloud, report = dense_cloud_rpc(a, b, *images)
+    report["crs"] = {"value": crs_name(cloud.crs), "reason": "UTM zone of the scene centre"}
+    if s.crs is not None:
+        t = pyproj.Transformer.from_crs(cloud.crs, s.crs, always_xy=True)
+        x, y = t.transform(cloud.xyz[:, 0], cloud.xyz[:, 1])
+        cloud = PointCloud(np.column_stack([x, y, cloud.xyz[:, 2]]), cloud.attributes, s.crs)
+        report["crs"] = {"value": crs_name(s.crs), "reason": "--crs"}
+    return cloud, report
 
 
 def _read_side_inputs(s: RunState) -> None:
@@ -228,7 +268,7 @@ def make_dsm(s: RunState) -> None:
         res, why = dsm_stage.choose_resolution(spacing, u)
     s.auto["dsm.resolution"] = {"value": res, "unit": u.name, "reason": why}
     s.auto["point_spacing"] = {"value": round(spacing, 3), "unit": u.name}
-    stereo = s.scene is not None
+    stereo = s.scene is not None  # frame or satellite stereo
     hole_area = cfg.max_hole_area if cfg.max_hole_area is not None else (200.0 if stereo else 25.0)
     s.auto["dsm.max_hole_area"] = {
         "value": hole_area,
@@ -514,7 +554,8 @@ def _run_record(s: RunState) -> dict:
         "recon3d": __version__,
         "inputs": {
             "input": str(s.input_path),
-            "kind": "stereo scene" if s.scene is not None else "point cloud",
+            "kind": "satellite pair" if s.satellite_paths else "stereo scene" if s.scene is not None else "point cloud",
+            "second_image": str(s.satellite_paths[1]) if s.satellite_paths else None,
             "points": len(s.cloud),
             "crs": crs_name(s.cloud.crs),
             "units": {"horizontal": s.units.name, "metres_per_unit": s.units.horizontal,
