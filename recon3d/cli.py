@@ -52,13 +52,14 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--crs", help="CRS of an input without one, e.g. EPSG:7415.")
 @click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
 @click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV of reference points: x,y,z[,id][,kind].")
+@click.option("--old-buildings", type=click.Path(path_type=Path), help="Older building database (footprints or CityJSON) to detect changes against.")
 @click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
 @click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, altimetry, config_path, overwrite, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, breaklines, altimetry, config_path, overwrite, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
     or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
 
@@ -94,6 +95,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, breaklines, alti
             checkpoints=checkpoints,
             breaklines=breaklines,
             altimetry=altimetry,
+            old_buildings=old_buildings,
             config=config,
             overwrite=overwrite,
             progress=progress,
@@ -209,6 +211,45 @@ def export(out_dir, fmt, dest, overwrite):
                "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
     writers[fmt](city, dest)
     click.echo(f"wrote {dest} ({len(city)} buildings)")
+
+
+@cli.command()
+@click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
+@click.option("--old-buildings", required=True, type=click.Path(path_type=Path), help="Older building database (Shapefile, GeoPackage, GeoJSON or CityJSON).")
+@click.option("--overwrite", is_flag=True, help="Replace earlier change products in OUT.")
+def change(out_dir, old_buildings, overwrite):
+    """Compare an older building database with the buildings of a run (OUT).
+
+    Writes OUT/changes.geojson (one feature per change: class, confidence, old and new
+    values), OUT/changes.tif (change classes on the product grid) and
+    OUT/buildings_updated.city.json (old ids kept where unchanged, lineage attributes).
+
+    \b
+    Examples
+    --------
+      recon3d change out --old-buildings bati_2015.shp
+    """
+    from recon3d.core.geo import crs_units
+    from recon3d.errors import InputError
+    from recon3d.io.cityjson import read_cityjson, write_cityjson
+    from recon3d.io.geotiff import read_raster, write_raster
+    from recon3d.io.vectors import read_footprints, write_features
+    from recon3d.quality import change as change_mod
+
+    target = out_dir / "changes.geojson"
+    if target.exists() and not overwrite:
+        raise InputError(f"{target}: exists; use --overwrite to replace it")
+    city = read_cityjson(out_dir / "buildings.city.json")
+    ndsm = read_raster(out_dir / "ndsm.tif")
+    crs = city.crs or ndsm.crs
+    old, _ = read_footprints(old_buildings, crs=crs)
+    result = change_mod.detect_changes(old, city, ndsm, units=crs_units(crs))
+    write_features(target, *change_mod.change_features(result), crs)
+    write_raster(change_mod.change_raster(result, ndsm), out_dir / "changes.tif")
+    write_cityjson(change_mod.updated_model(old, city, result), out_dir / "buildings_updated.city.json")
+    click.echo("changes: " + ", ".join(f"{k} {v}" for k, v in sorted(result.summary.items()) if v))
+    for note in result.notes:
+        click.echo(f"note: {note}")
 
 
 @cli.command()

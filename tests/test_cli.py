@@ -149,3 +149,27 @@ def test_validate_command(delft_run):
     # the Den Haag sample has one face 1+ cm off its plane: found, exit 1
     bad = CliRunner().invoke(cli, ["validate", str(shared("citymodels/DH_01_subs.city.json"))])
     assert bad.exit_code == 1 and "203 NON_PLANAR_POLYGON_DISTANCE_PLANE" in bad.output
+
+
+def test_change_detection_outputs(tmp_path):
+    """`run --old-buildings` and `recon3d change` write the change products, all readable."""
+    import json
+
+    import jsonschema
+
+    from conftest import BDUNI, CITYJSON_SCHEMA
+
+    out = tmp_path / "out"
+    result = _run([shared(IGN), "-o", out, "--old-buildings", shared(BDUNI)])
+    assert result.exit_code == 0, result.output
+    changes = json.loads((out / "changes.geojson").read_text())
+    classes = [f["properties"]["class"] for f in changes["features"]]
+    assert classes.count("not_observed") == 34  # BD Uni footprints off the LiDAR tile: no data, not demolished
+    assert "demolished" not in classes
+    doc = json.loads((out / "buildings_updated.city.json").read_text())
+    assert not list(jsonschema.Draft7Validator(json.loads(shared(CITYJSON_SCHEMA).read_text())).iter_errors(doc))
+    assert "Changes against the older building database" in (out / "report.html").read_text()
+    again = CliRunner().invoke(cli, ["change", str(out), "--old-buildings", str(shared(BDUNI))])
+    assert again.exit_code == 1 and "--overwrite" in again.output
+    again = CliRunner().invoke(cli, ["change", str(out), "--old-buildings", str(shared(BDUNI)), "--overwrite"])
+    assert again.exit_code == 0 and "not_observed 34" in again.output

@@ -62,6 +62,9 @@ class RunState:
     breaklines_path: Path | None = None
     altimetry_path: Path | None = None
     truth_dsm_path: Path | None = None
+    old_buildings_path: Path | None = None
+    old_buildings: list | None = None
+    changes: Any = None
     constraints: np.ndarray | None = None
     scene: Any = None
     satellite_paths: tuple[Path, Path] | None = None
@@ -97,6 +100,7 @@ def run(
     breaklines: str | Path | None = None,
     altimetry: str | Path | None = None,
     truth_dsm: str | Path | None = None,
+    old_buildings: str | Path | None = None,
     config: PipelineConfig | None = None,
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
@@ -119,6 +123,9 @@ def run(
         altimetry) the DTM must honour.
     truth_dsm : path-like, optional
         A reference DSM (GeoTIFF) the DSM is compared with cell by cell.
+    old_buildings : path-like, optional
+        An older building database (footprints or CityJSON) to detect changes against;
+        writes changes.geojson, changes.tif and buildings_updated.city.json.
     config : PipelineConfig, optional
     overwrite : bool
         Replace an existing, non-empty ``out_dir``.
@@ -156,6 +163,7 @@ def run(
         breaklines_path=Path(breaklines) if breaklines else None,
         altimetry_path=Path(altimetry) if altimetry else None,
         truth_dsm_path=Path(truth_dsm) if truth_dsm else None,
+        old_buildings_path=Path(old_buildings) if old_buildings else None,
     )
     try:
         for index, (name, stage) in enumerate(STAGES):
@@ -255,6 +263,9 @@ def _read_side_inputs(s: RunState) -> None:
         _check_overlap(s)
     if s.checkpoints_path:
         s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
+    if s.old_buildings_path:
+        s.old_buildings, notes = vectors.read_footprints(s.old_buildings_path, crs=s.cloud.crs)
+        s.notes += notes
     s.constraints = _read_constraints(s)
     s.work_dir.mkdir(parents=True, exist_ok=True)
 
@@ -455,6 +466,20 @@ def _roof_errors(s: RunState, model_minus_dsm: np.ndarray) -> None:
             b.attributes["roof_rms_m"] = round(float(value), 3)
 
 
+def detect_changes(s: RunState) -> None:
+    """Compare the older building database, when one was given, with the new model."""
+    if s.old_buildings is None:
+        return
+    from recon3d.quality import change
+
+    s.changes = change.detect_changes(
+        s.old_buildings, s.city, s.ndsm, units=s.units,
+        vegetation=s.ndsm.like((np.nan_to_num(s.vegetation_share) > 0.5).astype(np.float32)),
+        density=change.point_density(s.cloud.xyz, s.ndsm),
+    )
+    s.report["changes"] = {"summary": s.changes.summary, "notes": s.changes.notes}
+
+
 def write_products(s: RunState) -> None:
     from recon3d.io.cityjson import write_cityjson
     from recon3d.io.gltf import write_glb
@@ -469,6 +494,13 @@ def write_products(s: RunState) -> None:
     write_obj(s.city, w / "buildings.obj")
     write_glb(s.city, w / "buildings.glb")
     _write_footprints(s, w / "footprints.geojson")
+    if s.changes is not None:
+        from recon3d.quality import change
+
+        geoms, props = change.change_features(s.changes)
+        vectors.write_features(w / "changes.geojson", geoms, props, s.city.crs)
+        write_raster(change.change_raster(s.changes, s.dsm), w / "changes.tif")
+        write_cityjson(change.updated_model(s.old_buildings, s.city, s.changes), w / "buildings_updated.city.json")
     _write_json(w / "report.json", s.report)
 
 
@@ -482,6 +514,7 @@ STAGES: list[tuple[str, Callable[[RunState], None]]] = [
     ("lod", build_solids),
     ("model_dsm", rasterize_model),
     ("evaluate", evaluate_products),
+    ("change", detect_changes),
     ("write", write_products),
 ]
 
@@ -565,6 +598,7 @@ def _run_record(s: RunState) -> dict:
             "checkpoints": str(s.checkpoints_path) if s.checkpoints_path else None,
             "breaklines": str(s.breaklines_path) if s.breaklines_path else None,
             "altimetry": str(s.altimetry_path) if s.altimetry_path else None,
+            "old_buildings": str(s.old_buildings_path) if s.old_buildings_path else None,
         },
         "config": s.config.to_dict(),
         "chosen": s.auto,

@@ -195,11 +195,11 @@ def _clean_old(old: list, notes: list[str]) -> tuple[list[str], np.ndarray, list
 
 
 def _new_buildings(city: CityModel, notes: list[str]) -> list[Building]:
-    """Buildings of the run that stand as evidence (status ok, an outline with area)."""
+    """Buildings of the run that stand as evidence (a solid was built, an outline with area)."""
     kept = [
         b
         for b in city.buildings
-        if b.status == "ok" and b.footprint is not None and b.footprint.area > 0
+        if b.status != "failed" and b.footprint is not None and b.footprint.area > 0
     ]
     if len(kept) < len(city.buildings):
         notes.append(
@@ -614,7 +614,7 @@ def detect_changes(
         ``attributes`` (dict; heights read from ``roof_z`` (absolute) or ``height`` /
         ``hauteur`` (above ground), roof type from ``roof_type``).
     new : CityModel
-        Buildings of the run; only those with status "ok" count as evidence.
+        Buildings of the run; those with status "failed" (no solid) are no evidence.
     ndsm : Raster
         nDSM of the run, (rows, cols) float32, NaN where there is no data.
     config : ChangeParams

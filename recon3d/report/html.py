@@ -52,6 +52,7 @@ def write_report(out_dir: str | Path) -> Path:
         _ground_section(report),
         _images_section(out_dir),
         _buildings_section(out_dir, report),
+        _changes_section(report),
         _timings_section(run),
         _parameters_section(run),
     ]
@@ -174,6 +175,15 @@ def _map_svg(path: Path, size: int = 600) -> str:
 def _error_color(err: float) -> str:
     t = min(max(err / 2.0, 0.0), 1.0)
     return f"rgb({int(40 + 200 * t)},{int(180 - 140 * t)},60)"
+
+
+def _changes_section(report: dict) -> str:
+    c = report.get("changes")
+    if not c:
+        return ""
+    rows = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v}</td></tr>" for k, v in c["summary"].items())
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in c.get("notes", []))
+    return f"<h2>Changes against the older building database</h2><table>{rows}</table><ul class=small>{notes}</ul>"
 
 
 def _timings_section(run: dict) -> str:
