@@ -281,3 +281,48 @@ def test_ign_detected_buildings(ign_run):
     model = updated_model(old, ign_run.city, result)
     n_new = sum(len(r["new_ids"]) for r in result.changes)
     assert len(model.buildings) == len(old) - len(matched) + n_new
+
+
+def test_synthetic_stereo_city_with_known_edits(tmp_path):
+    """A rendered city reconstructed from stereo against its own truth map, edited to an earlier state.
+
+    Measured: every edit found (recall 1 for each class); precision 1 for demolished and
+    height changes; 'new' also fires on small tree crowns that the stereo surface makes
+    smooth enough to pass as buildings (precision 2/6 on this scene), and footprint
+    changes once on an L-shaped building (precision 1/2): the issue's 95 % precision is
+    not reached yet.
+    """
+    from recon3d.io.vectors import Footprint, read_footprints
+    from recon3d.pipeline.run import run
+    from recon3d.quality.change import detect_changes
+    from recon3d.synthetic import write_scene
+
+    scene = tmp_path / "scene"
+    write_scene(scene, seed=0)
+    state = run(scene, tmp_path / "out")
+    truth, _ = read_footprints(scene / "truth" / "footprints.geojson", crs=state.city.crs)
+    for f in truth:
+        f.attributes.pop("roof_type", None)  # an old 2-D map: no roof types
+    removed = {truth[0].id, truth[5].id}
+    old = [f for f in truth if f.id not in removed]
+    lowered = {f.id for f in old[1:3]}
+    for f in old[1:3]:
+        f.attributes["height"] -= 5.0
+    shrunk = old[4]
+    shrunk.polygon = shapely.affinity.scale(shrunk.polygon, 0.6, 0.6, origin=shrunk.polygon.centroid)
+    lo, hi = state.cloud.bounds
+    fakes = [Footprint(f"fake{i}", shapely.box(x - 4, y - 4, x + 4, y + 4), {"height": 8.0})
+             for i, (x, y) in enumerate([(lo[0] + 8, lo[1] + 8), (hi[0] - 8, hi[1] - 8)])]
+    result = detect_changes(old + fakes, state.city, state.ndsm, units=state.units)
+    found = {c["class"]: [] for c in result.changes}
+    for c in result.changes:
+        found[c["class"]].append(c)
+    assert {i for c in found["demolished"] for i in c["old_ids"]} == {"fake0", "fake1"}
+    assert {i for c in found["height_changed"] for i in c["old_ids"]} == lowered
+    assert shrunk.id in {i for c in found["footprint_changed"] for i in c["old_ids"]}
+    assert len(found["footprint_changed"]) <= 2
+    truth_of_new = {f.id for f in truth if f.id in removed}
+    new_polys = [c["geometry"] for c in found["new"]]
+    hit = {f.id for f in truth if f.id in truth_of_new and any(p.intersects(f.polygon) for p in new_polys)}
+    assert hit == truth_of_new  # recall 1
+    assert len(found["new"]) <= 6  # precision >= 1/3 (tree crowns; see the docstring)
