@@ -129,3 +129,28 @@ def test_no_crs(scene, tmp_path):
     folder = _copy(scene, tmp_path)
     (folder / "georef.json").write_text(json.dumps({"offset": [0, 0, 0]}))
     _fails(folder, tmp_path, "no CRS")
+
+
+def test_buildings_found_and_trees_left_out(stereo_run, scene):
+    """Tree crowns are green but, matched, as smooth as roofs: colour keeps them out of the buildings."""
+    from recon3d.io.vectors import read_footprints
+    from recon3d.quality.buildings import evaluate_footprints
+
+    truth, _ = read_footprints(scene / "truth" / "footprints.geojson", crs=stereo_run.city.crs)
+    detected = [b.footprint for b in stereo_run.city if b.status != "failed"]
+    scores = evaluate_footprints(detected, [f.polygon for f in truth], units=stereo_run.units)
+    assert scores["object_correctness"] == 100.0  # no tree became a building
+    assert scores["object_completeness"] >= 85.0
+    import csv
+
+    from scipy.spatial import cKDTree
+
+    trees = list(csv.DictReader((scene / "truth" / "trees.csv").open()))
+    centres = np.array([[float(t["x"]), float(t["y"])] for t in trees])
+    radius = np.array([float(t["crown_radius"]) for t in trees])
+    ground = np.array([float(t["ground_z"]) for t in trees])
+    xyz = stereo_run.cloud.xyz
+    d, i = cKDTree(centres).query(xyz[:, :2])
+    crown = (d < 0.7 * radius[i]) & (xyz[:, 2] > ground[i] + 2.0)
+    assert crown.sum() > 100
+    assert np.mean(stereo_run.point_classes[crown] == 5) >= 0.5  # tree crowns are vegetation in cloud.laz

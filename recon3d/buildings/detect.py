@@ -151,6 +151,9 @@ def vegetation_index(cloud: PointCloud) -> tuple[np.ndarray, str] | None:
 
 #: Colour index above which a point looks like vegetation (NDVI, excess green).
 GREEN_THRESHOLDS = {"ndvi": 0.3, "exg": 0.05}
+#: Stricter thresholds when colour is the only evidence (stereo): grey gravel and
+#: concrete roofs reach an excess green of 0.1 in aerial images, foliage 0.2 and more.
+COLOUR_ONLY_THRESHOLDS = {"ndvi": 0.3, "exg": 0.15}
 
 
 def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig, units: Units) -> np.ndarray:
@@ -160,8 +163,10 @@ def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig,
     neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``;
     roofs and walls are planar) and it carries vegetation evidence: an echo of a
     multi-return pulse (leaves let part of the pulse through, roofs do not), or a green
-    colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A cloud with neither
-    returns nor colours (stereo) falls back on scattering l3 / l1 > 0.05. The decision
+    colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A coloured cloud without
+    returns (stereo) is judged on colour alone: dense matching smooths tree crowns until
+    they are as planar as roofs. A cloud with neither returns nor colours falls back on
+    scattering l3 / l1 > 0.05. The decision
     is then smoothed by a majority vote among the ``vegetation_neighbours`` neighbours.
 
     Parameters
@@ -195,7 +200,12 @@ def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig,
         evidence |= colour[0][idx] > GREEN_THRESHOLDS[colour[1]]
     if not have_returns and colour is None:
         evidence |= feats["scattering"] > 0.05
-    veg = (feats["roughness"] > units.height(config.vegetation_roughness)) & evidence
+    if colour is not None and not have_returns:
+        # photogrammetric surfaces: the matcher smooths tree crowns (roughness 0.04 m,
+        # like roofs' 0.035 m on the rendered city) while their colour stays green
+        veg = colour[0][idx] > COLOUR_ONLY_THRESHOLDS[colour[1]]
+    else:
+        veg = (feats["roughness"] > units.height(config.vegetation_roughness)) & evidence
     veg = veg[feats["neighbours"]].mean(axis=1) > 0.5
     out[idx] = veg
     log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(idx), config.vegetation_min_height)
