@@ -560,6 +560,24 @@ def _simplify_shared(geoms, values, tolerance, xy=None, point_labels=None):
     faces = list(shapely.polygonize(list(shapely.get_parts(shapely.union_all(lines)))).geoms)
     if not faces:
         return geoms, values
+    pieces = _faces_by_label(faces, tree, geoms, values)
+    return [p for p, _ in pieces], [v for _, v in pieces]
+
+
+def _faces_by_label(faces, tree, geoms, values) -> list[tuple[shapely.Polygon, int]]:
+    """Give each face the label of the region it overlaps most; union the faces per label.
+
+    Parameters
+    ----------
+    faces : list of shapely.Polygon
+        A partition (polygonized noded lines).
+    tree : shapely.STRtree
+        Over ``geoms``, the labelled regions; ``values[i]`` is the label of ``geoms[i]``.
+
+    Returns
+    -------
+    list of (Polygon, label), by label.
+    """
     by_label: dict[int, list] = {}
     for face in faces:
         cand = tree.query(face)
@@ -567,14 +585,12 @@ def _simplify_shared(geoms, values, tolerance, xy=None, point_labels=None):
             continue
         areas = [shapely.intersection(face, geoms[c]).area for c in cand]
         by_label.setdefault(values[int(cand[int(np.argmax(areas))])], []).append(face)
-    out_g, out_v = [], []
-    for label in sorted(by_label):
-        merged = shapely.union_all(by_label[label])
-        for piece in shapely.get_parts(merged):
-            if piece.geom_type == "Polygon" and piece.area > 0:
-                out_g.append(piece)
-                out_v.append(label)
-    return out_g, out_v
+    return [
+        (piece, label)
+        for label in sorted(by_label)
+        for piece in shapely.get_parts(shapely.union_all(by_label[label]))
+        if piece.geom_type == "Polygon" and piece.area > 0
+    ]
 
 
 def _pair_midpoints(xy, labels, cell) -> dict[tuple[int, int], np.ndarray]:
@@ -1115,19 +1131,7 @@ def _arrangement(regions, planes, fp, grid: _Grid, u) -> list[tuple[shapely.Poly
     noded = shapely.union_all([*cuts, fp.boundary])
     faces = [f for f in shapely.get_parts(shapely.polygonize(shapely.get_parts(noded))) if f.area > 0]
     faces = [f for f in faces if fp.contains(f.representative_point())]
-    by_label: dict[int, list] = {}
-    for face in faces:
-        cand = tree.query(face)
-        if not len(cand):
-            continue
-        areas = [shapely.intersection(face, polys[c]).area for c in cand]
-        by_label.setdefault(labels[int(cand[int(np.argmax(areas))])], []).append(face)
-    out = []
-    for label in sorted(by_label):
-        for piece in shapely.get_parts(shapely.union_all(by_label[label])):
-            if piece.geom_type == "Polygon" and piece.area > 0:
-                out.append((piece, label))
-    return out
+    return _faces_by_label(faces, tree, polys, labels)
 
 
 def _points_agree(part, xy, plab, li, lj, grad, off, near, tol) -> bool:
