@@ -41,7 +41,7 @@ class _Group(click.Group):
 @click.option("-q", "--quiet", count=True, help="Fewer messages: errors only, no progress bar.")
 @click.pass_context
 def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
-    """recon3d: 3D city models, DSM and DTM from point clouds, with accuracy reports."""
+    """recon3d: DSM, DTM and 3D city models from point clouds and stereo imagery, with accuracy reports."""
     _configure_logging(verbose, quiet)
     ctx.obj = {"quiet": quiet > 0}
 
