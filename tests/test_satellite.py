@@ -37,8 +37,11 @@ def test_dsm_in_utm_with_the_pyramid(giza):
     apex = z[iy, ix]
     ring = np.maximum(np.abs(gx - gx[iy, ix]), np.abs(gy - gy[iy, ix]))
     base = np.nanmedian(np.where((ring > 118) & (ring < 130), z, np.nan))  # just outside the 230 m base
-    # issue target 139 +- 3 m; measured 142.1 m (the highest cell of a 1 m DSM at the summit)
+    # the summit's cells scatter by +-3 m (stepped masonry, matching noise): the single
+    # highest cell gives 142.1 m, the mean of the five highest 140.2 m (issue: 139 +- 3)
+    top5 = np.sort(z[near & np.isfinite(z)])[-5:].mean()
     assert apex - base == pytest.approx(139.0, abs=3.5)
+    assert top5 - base == pytest.approx(139.0, abs=3.0)
     above = np.nan_to_num(z[iy], nan=-1e9) > base + 2  # the base along the east-west line through the apex
     lo = hi = ix
     while lo > 0 and above[lo - 1]:
