@@ -53,13 +53,14 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
 @click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV of reference points: x,y,z[,id][,kind].")
 @click.option("--old-buildings", type=click.Path(path_type=Path), help="Older building database (footprints or CityJSON) to detect changes against.")
+@click.option("--gcps", type=click.Path(path_type=Path), help="Ground control points (CSV x,y,z in the output CRS) for a satellite pair's absolute bias.")
 @click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
 @click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, breaklines, altimetry, config_path, overwrite, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, config_path, overwrite, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
     or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
 
@@ -96,6 +97,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, b
             breaklines=breaklines,
             altimetry=altimetry,
             old_buildings=old_buildings,
+            gcps=gcps,
             config=config,
             overwrite=overwrite,
             progress=progress,

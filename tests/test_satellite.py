@@ -92,3 +92,34 @@ def test_crops_that_do_not_overlap(tmp_path):
         t = dst.transform
         dst.transform = rasterio.Affine(t.a, t.b, t.c + 3000, t.d, t.e, t.f)  # 3000 px further east
     _fails([shared(IMG1), far], "img1 and img2", "do not overlap", tmp_path=tmp_path)
+
+
+def test_absolute_bias_from_control_points(giza, tmp_path):
+    """Control points displaced by a known shift: the shift is recovered and applied."""
+    from recon3d.core.raster import grid_for_bounds
+    from recon3d.core.raster import Raster
+    from recon3d.pipeline.run import run
+    from recon3d.stereo.satellite import absolute_shift
+    from recon3d.terrain.dsm import grid_points
+
+    cloud = giza.cloud
+    lo, hi = cloud.bounds
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], 1.0)
+    surface = Raster(grid_points(cloud.xyz, transform, shape, reducer="mean"), transform)
+    rng = np.random.default_rng(0)
+    x, y = surface.cell_centers()
+    r = rng.integers(20, shape[0] - 20, 400)
+    c = rng.integers(20, shape[1] - 20, 400)
+    keep = np.isfinite(surface.data[r, c])
+    gcps = np.column_stack([x[c[keep]], y[r[keep]], surface.data[r[keep], c[keep]]])[:60]
+    true_shift = np.array([2.0, -1.5, 3.0])
+    shift, report = absolute_shift(cloud, gcps + true_shift)
+    assert np.abs(shift[:2] - true_shift[:2]).max() <= 0.5  # the search step
+    assert abs(shift[2] - true_shift[2]) <= 0.3
+    csv = tmp_path / "gcps.csv"
+    moved = gcps + true_shift
+    csv.write_text("x,y,z\n" + "\n".join(f"{p[0]},{p[1]},{p[2]}" for p in moved) + "\n")
+    shifted = run((shared(IMG1), shared(IMG2)), tmp_path / "out", gcps=csv)
+    assert shifted.auto["stereo"]["absolute_bias"]["shift_m"] == pytest.approx(shift.tolist(), abs=0.01)
+    with pytest.raises(Exception, match="at least 3"):
+        absolute_shift(cloud, gcps[:2])

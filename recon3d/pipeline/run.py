@@ -63,6 +63,8 @@ class RunState:
     altimetry_path: Path | None = None
     truth_dsm_path: Path | None = None
     old_buildings_path: Path | None = None
+    gcps_path: Path | None = None
+    gcps: Any = None
     old_buildings: list | None = None
     changes: Any = None
     constraints: np.ndarray | None = None
@@ -101,6 +103,7 @@ def run(
     altimetry: str | Path | None = None,
     truth_dsm: str | Path | None = None,
     old_buildings: str | Path | None = None,
+    gcps: str | Path | None = None,
     config: PipelineConfig | None = None,
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
@@ -123,6 +126,9 @@ def run(
         altimetry) the DTM must honour.
     truth_dsm : path-like, optional
         A reference DSM (GeoTIFF) the DSM is compared with cell by cell.
+    gcps : path-like, optional
+        Ground control points (CSV x,y,z in the output CRS) removing the absolute bias
+        of a satellite pair's RPCs.
     old_buildings : path-like, optional
         An older building database (footprints or CityJSON) to detect changes against;
         writes changes.geojson, changes.tif and buildings_updated.city.json.
@@ -164,6 +170,7 @@ def run(
         altimetry_path=Path(altimetry) if altimetry else None,
         truth_dsm_path=Path(truth_dsm) if truth_dsm else None,
         old_buildings_path=Path(old_buildings) if old_buildings else None,
+        gcps_path=Path(gcps) if gcps else None,
     )
     try:
         for index, (name, stage) in enumerate(STAGES):
@@ -199,6 +206,8 @@ def read_inputs(s: RunState) -> None:
         from recon3d.io.rpc import read_rpc_camera
 
         s.scene = [read_rpc_camera(p) for p in s.satellite_paths]
+        if s.gcps_path:
+            s.gcps = checkpoints_io.read_checkpoints(s.gcps_path)
     elif is_scene_folder(s.input_path):
         s.scene = read_scene(s.input_path, crs=s.crs)
         s.units = crs_units(s.scene.crs, source=str(s.input_path))
@@ -249,6 +258,11 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
         x, y = t.transform(cloud.xyz[:, 0], cloud.xyz[:, 1])
         cloud = PointCloud(np.column_stack([x, y, cloud.xyz[:, 2]]), cloud.attributes, s.crs)
         report["crs"] = {"value": crs_name(s.crs), "reason": "--crs"}
+    if s.gcps is not None:
+        from recon3d.stereo.satellite import absolute_shift
+
+        shift, report["absolute_bias"] = absolute_shift(cloud, s.gcps.xyz)
+        cloud = PointCloud(cloud.xyz + shift, cloud.attributes, cloud.crs)
     return cloud, report
 
 
@@ -599,6 +613,7 @@ def _run_record(s: RunState) -> dict:
             "breaklines": str(s.breaklines_path) if s.breaklines_path else None,
             "altimetry": str(s.altimetry_path) if s.altimetry_path else None,
             "old_buildings": str(s.old_buildings_path) if s.old_buildings_path else None,
+            "gcps": str(s.gcps_path) if s.gcps_path else None,
         },
         "config": s.config.to_dict(),
         "chosen": s.auto,

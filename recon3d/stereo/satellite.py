@@ -25,7 +25,7 @@ from recon3d.io.rpc import RPCCamera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SatellitePair", "dense_cloud_rpc", "rectify_rpc_pair", "utm_crs"]
+__all__ = ["SatellitePair", "absolute_shift", "dense_cloud_rpc", "rectify_rpc_pair", "utm_crs"]
 
 
 @dataclass
@@ -271,3 +271,54 @@ def _lift(a: RPCCamera, b: RPCCamera, p1: np.ndarray, h: np.ndarray) -> np.ndarr
     lon, lat = a.localize(p1[:, 1], p1[:, 0], h)
     r, c = b.project(lon, lat, h)
     return np.column_stack([c, r])
+
+
+def absolute_shift(cloud: PointCloud, gcps: np.ndarray, *, search: float = 5.0, step: float = 0.5) -> tuple[np.ndarray, dict]:
+    """Translation that brings the cloud onto ground control points (the RPCs' absolute bias).
+
+    An RPC pair's absolute error is close to a constant shift on the ground. With 3-D
+    control points only (no image measurements), the horizontal part is found by
+    sliding the points over the cloud's surface (median height per 1 m column, a grid
+    search within ``search`` metres) to the position where the height residuals agree
+    best; the vertical part is then their median. Points on sloped or built ground
+    carry the horizontal information; on flat ground only the height is recovered.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+        Metric CRS.
+    gcps : (m, 3) float
+        Control points in the cloud's CRS.
+
+    Returns
+    -------
+    shift : (3,) float
+        To add to the cloud's coordinates.
+    report : dict
+    """
+    from recon3d.core.raster import Raster, grid_for_bounds
+    from recon3d.terrain.dsm import grid_points
+
+    if len(gcps) < 3:
+        raise InputError(f"{len(gcps)} ground control points; at least 3 are needed to estimate the bias")
+    lo, hi = cloud.bounds
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], 1.0)
+    surface = Raster(grid_points(cloud.xyz, transform, shape, reducer="mean"), transform)
+    offsets = np.arange(-search, search + step / 2, step)
+    best = (np.inf, 0.0, 0.0, 0.0)
+    for dx in offsets:  # a small grid of shifts, each vectorised over the points
+        for dy in offsets:
+            dz = gcps[:, 2] - surface.sample(gcps[:, 0] - dx, gcps[:, 1] - dy)
+            ok = np.isfinite(dz)
+            if ok.sum() < 3:
+                continue
+            med = float(np.median(dz[ok]))
+            spread = float(np.median(np.abs(dz[ok] - med)))
+            if spread < best[0] - 1e-9:
+                best = (spread, dx, dy, med)
+    if not np.isfinite(best[0]):
+        raise InputError("the ground control points do not fall on the reconstructed surface")
+    shift = np.array(best[1:])
+    report = {"shift_m": np.round(shift, 3).tolist(), "residual_mad_m": round(best[0], 3), "gcps": int(len(gcps))}
+    log.info("absolute bias from %d GCPs: %s m", len(gcps), report["shift_m"])
+    return shift, report
