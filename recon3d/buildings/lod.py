@@ -867,27 +867,18 @@ def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list
         norm = np.linalg.norm(nv)
         normals[i] = nv / norm if norm > 0 else 0.0
         offsets[i] = float(np.mean(verts[w][:, :2] @ normals[i]))
-    parent = list(range(n))
-
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
+    sets = _MinRootSets(n)
     owner: dict[tuple[int, int], int] = {}
     for i, w in enumerate(walls):
         for a, b in zip(w.tolist(), np.roll(w, -1).tolist(), strict=True):
             j = owner.get((b, a))
             same = j is not None and normals[i] @ normals[j] > 0.99996
             if same and abs(offsets[i] - offsets[j]) < tol:
-                ri, rj = find(i), find(j)
-                if ri != rj:
-                    parent[max(ri, rj)] = min(ri, rj)
+                sets.union(i, j)
             owner[(a, b)] = i
     groups: dict[int, list[int]] = {}
     for i in range(n):
-        groups.setdefault(find(i), []).append(i)
+        groups.setdefault(sets.find(i), []).append(i)
     out = []
     for members in groups.values():
         if len(members) == 1:
@@ -1192,14 +1183,7 @@ def _lod13(grid: _Grid, fp, points, seg, g, u, cfg, *, labels=None) -> Solid:
     if not used:
         raise _LodFailure("no_roof_planes")
     # merge neighbouring labels closer than lod13_step (union-find over touching cells)
-    parent = list(range(nl))
-
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
+    sets = _MinRootSets(nl)
     step = u.height(getattr(cfg, "lod13_step", 1.0))
     lab_grid = grid.labels
     pairs = set()
@@ -1207,13 +1191,13 @@ def _lod13(grid: _Grid, fp, points, seg, g, u, cfg, *, labels=None) -> Solid:
         m = (a >= 0) & (b >= 0) & (a != b)
         pairs |= set(zip(a[m].tolist(), b[m].tolist(), strict=True))
     for a, b in sorted(pairs, key=lambda ab: abs(heights[ab[0]] - heights[ab[1]])):
-        ra, rb = find(a), find(b)
+        ra, rb = sets.find(a), sets.find(b)
         if ra != rb and abs(heights[ra] - heights[rb]) < step:
-            parent[max(ra, rb)] = min(ra, rb)
-            members = [k for k in range(nl) if find(k) == min(ra, rb)]
+            root = sets.union(ra, rb)
+            members = [k for k in range(nl) if sets.find(k) == root]
             z = points[np.isin(lab, members), 2]
-            heights[min(ra, rb)] = np.percentile(z, 70) if len(z) else heights[min(ra, rb)]
-    root = np.array([find(k) for k in range(nl)])
+            heights[root] = np.percentile(z, 70) if len(z) else heights[root]
+    root = np.array([sets.find(k) for k in range(nl)])
     merged = np.where(lab_grid >= 0, root[np.maximum(lab_grid, 0)], -1)
     planes = [
         np.array([0.0, 0.0, 1.0, -max(h, g + u.height(0.5))]) if np.isfinite(h) else None
@@ -1225,6 +1209,26 @@ def _lod13(grid: _Grid, fp, points, seg, g, u, cfg, *, labels=None) -> Solid:
     merged = _unpinch(merged, grid.inside)
     merged_grid = _Grid(merged, grid.inside, grid.transform, grid.cell, grid.xy, point_labels)
     return _roofed(merged_grid, fp, planes, g, u, intersect=False)[0]
+
+
+class _MinRootSets:
+    """Union-find whose root is always the smallest member, so labels do not depend on merge order."""
+
+    def __init__(self, n: int) -> None:
+        self.parent = list(range(n))
+
+    def find(self, a: int) -> int:
+        while self.parent[a] != a:
+            self.parent[a] = self.parent[self.parent[a]]
+            a = self.parent[a]
+        return a
+
+    def union(self, a: int, b: int) -> int:
+        """Join the sets of a and b; returns the root of the joined set."""
+        ra, rb = self.find(a), self.find(b)
+        root = min(ra, rb)
+        self.parent[max(ra, rb)] = root
+        return root
 
 
 def _face_rings(verts: np.ndarray, edges: np.ndarray, normal: np.ndarray) -> list[list[np.ndarray]]:

@@ -15,7 +15,7 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["make_dtm", "make_ndsm"]
+__all__ = ["densify_lines", "fill_gaps", "fill_nearest", "make_dtm", "make_ndsm"]
 
 
 def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -53,11 +53,16 @@ def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
             out[gr, gc] = interp(np.column_stack([gr, gc]))
     except QhullError:  # rim cells all on one line: nothing to triangulate
         pass
-    missing = ~np.isfinite(out)
-    if missing.any():
-        idx = ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)
-        out = out[tuple(idx)]
-    return out
+    return fill_nearest(out)
+
+
+def fill_nearest(data: np.ndarray) -> np.ndarray:
+    """(rows, cols) float64 copy in which NaN cells take the value of the nearest valid cell."""
+    missing = ~np.isfinite(data)
+    if not missing.any():
+        return data.astype(np.float64)
+    idx = ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)
+    return data[tuple(idx)].astype(np.float64)
 
 
 def _fill_small_gaps(out: np.ndarray, gaps: np.ndarray, max_cells: int = 4):

@@ -44,7 +44,7 @@ from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.errors import InputError
 from recon3d.terrain.dsm import grid_points
-from recon3d.terrain.dtm import fill_gaps
+from recon3d.terrain.dtm import fill_gaps, fill_nearest
 
 log = logging.getLogger(__name__)
 
@@ -191,7 +191,7 @@ def minimum_surface(
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
     zmin = _drop_low_outliers(grid_points(xyz, transform, shape, reducer="min"), units)
     measured = np.isfinite(zmin)
-    surface = _fill_nearest(zmin)
+    surface = fill_nearest(zmin)
 
     if config.max_window:
         window = units.length(config.max_window)
@@ -340,22 +340,13 @@ def _drop_low_outliers(zmin: np.ndarray, units: Units) -> np.ndarray:
     """NaN out cells far below their neighbourhood (multipath, reflections under water)."""
     if not np.isfinite(zmin).any():
         return zmin
-    median = cv2.medianBlur(_fill_nearest(zmin).astype(np.float32), 5)
+    median = cv2.medianBlur(fill_nearest(zmin).astype(np.float32), 5)
     low = zmin < median - units.height(2.0)
     if low.any():
         log.info("ground: %d low-outlier cells ignored", int(low.sum()))
     out = zmin.copy()
     out[low] = np.nan
     return out
-
-
-def _fill_nearest(data: np.ndarray) -> np.ndarray:
-    """NaN cells take the value of the nearest valid cell."""
-    missing = ~np.isfinite(data)
-    if not missing.any():
-        return data.astype(np.float64)
-    idx = ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)
-    return data[tuple(idx)].astype(np.float64)
 
 
 def _noise(surface: np.ndarray, measured: np.ndarray) -> float:
