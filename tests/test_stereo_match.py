@@ -81,11 +81,11 @@ def cones():
 # ----------------------------------------------------------------------------- Middlebury
 
 
-@pytest.mark.parametrize(("engine", "regression"), [("census", 3.6), ("sgbm", 4.2)])
+@pytest.mark.parametrize(("engine", "regression"), [("census", 3.6), ("sgbm", 4.0)])
 def test_middlebury_cones_bad1(cones, engine, regression, record_property):
     """Acceptance: bad-1 <= 5 % on non-occluded pixels, invalid pixels counted as errors.
 
-    Measured 3.2 % (census, the default) and 3.8 % (sgbm) at 100 % density; raw
+    Measured 3.3 % (census, the default) and 3.6 % (sgbm) at 100 % density; raw
     StereoSGBM scores 12.6 % at 90.6 %. ``regression`` guards the measured figures.
     """
     left, right, gt, mask = cones
