@@ -10,18 +10,23 @@ from recon3d.core.raster import Raster
 __all__ = ["model_dsm"]
 
 
-def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None) -> Raster:
+def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
     """The DTM with every building solid on top of it, as a DSM on the DTM's grid.
 
-    Vertical rays are cast through each cell centre (Open3D ``RaycastingScene``, CPU)
-    against the solids of the highest available LoD (or ``lod``); the first hit from
-    above is the model surface, and cells with no hit keep the terrain height.
+    Vertical rays are cast on a ``samples`` x ``samples`` lattice inside each cell
+    (Open3D ``RaycastingScene``, CPU) against the solids of the highest available LoD
+    (or ``lod``); a cell takes the highest first hit from above, like the measured
+    DSM takes the highest point per cell, and cells with no hit keep the terrain
+    height. A single ray through the centre would charge every eave cell whose centre
+    falls just outside the footprint with the whole wall height.
 
     Parameters
     ----------
     city : CityModel
     dtm : Raster
     lod : str, optional
+    samples : int
+        Rays per cell along each axis (1 = the cell centre only).
 
     Returns
     -------
@@ -49,14 +54,19 @@ def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None) -> Raster
     gx, gy = np.meshgrid(x, y)
     origin = np.asarray(city.frame.origin)
     top = float(vertices[:, 2].max()) + 10.0
+    a, e = dtm.transform.a, dtm.transform.e
+    steps = (np.arange(samples) + 0.5) / samples - 0.5  # offsets in cells, centred
+    highest = np.full(out.shape, -np.inf)
     rays = np.zeros((gx.size, 6), np.float32)
-    rays[:, 0] = gx.ravel() - origin[0]
-    rays[:, 1] = gy.ravel() - origin[1]
     rays[:, 2] = top
     rays[:, 5] = -1.0
-    t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
-    hit = np.isfinite(t_hit)
-    z = (top - t_hit + origin[2]).reshape(out.shape)
-    hit = hit.reshape(out.shape)
-    out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], z[hit]), z[hit])
-    return dtm.like(out, product="model DSM", method="building solids ray-cast over the DTM")
+    for sy in steps:
+        for sx in steps:
+            rays[:, 0] = gx.ravel() + sx * a - origin[0]
+            rays[:, 1] = gy.ravel() + sy * e - origin[1]
+            t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+            z = (top - t_hit + origin[2]).reshape(out.shape)  # -inf where no hit
+            np.maximum(highest, z, out=highest, where=np.isfinite(z))
+    hit = np.isfinite(highest)
+    out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], highest[hit]), highest[hit])
+    return dtm.like(out, product="model DSM", method=f"building solids ray-cast over the DTM, highest of {samples} x {samples} rays per cell")
