@@ -81,11 +81,11 @@ def cones():
 # ----------------------------------------------------------------------------- Middlebury
 
 
-@pytest.mark.parametrize(("engine", "regression"), [("census", 3.6), ("sgbm", 4.0)])
+@pytest.mark.parametrize(("engine", "regression"), [("census", 3.5), ("sgbm", 3.6)])
 def test_middlebury_cones_bad1(cones, engine, regression, record_property):
     """Acceptance: bad-1 <= 5 % on non-occluded pixels, invalid pixels counted as errors.
 
-    Measured 3.3 % (census, the default) and 3.6 % (sgbm) at 100 % density; raw
+    Measured 3.2 % (census, the default) and 3.3 % (sgbm) at 100 % density; raw
     StereoSGBM scores 12.6 % at 90.6 %. ``regression`` guards the measured figures.
     """
     left, right, gt, mask = cones
@@ -97,6 +97,26 @@ def test_middlebury_cones_bad1(cones, engine, regression, record_property):
     assert scores["bad1"] <= regression, scores
     assert scores["density"] >= 99.9, scores
     assert scores["mae"] < 0.5, scores
+
+
+def test_edge_aware_median_moves_a_smeared_step_onto_the_colour_edge():
+    """A roof (disparity 30) whose matched edge came out 2 px short of its colour edge
+    gets those pixels back; pixels away from the step keep their sub-pixel values."""
+    from recon3d.stereo.match import _edge_aware_median
+
+    h, w, edge = 40, 60, 30
+    guide = np.zeros((h, w, 3), np.float32)
+    guide[:, :edge] = (200, 90, 70)  # tiles
+    guide[:, edge:] = (70, 110, 50)  # grass
+    rng = np.random.default_rng(0)
+    guide += rng.normal(0, 3, guide.shape).astype(np.float32)
+    truth = np.where(np.arange(w) < edge, 30.0, 10.0).astype(np.float32)[None, :].repeat(h, 0)
+    truth += rng.uniform(-0.3, 0.3, truth.shape).astype(np.float32)
+    smeared = truth.copy()
+    smeared[:, edge - 2 : edge] = 10.0  # the cost window pulled the background in
+    out = _edge_aware_median(smeared, guide, radius=6, sigma=12.0)
+    assert np.abs(out - truth)[:, 8:-8].max() < 1.0
+    assert np.array_equal(out[:, :edge - 10], smeared[:, :edge - 10])  # far from the step
 
 
 def test_middlebury_cones_unfilled_map(cones):

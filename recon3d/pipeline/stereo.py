@@ -42,7 +42,7 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
         # black borders outside the photos are nodata, not texture to match
         left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
         right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
-        result = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1))
+        result = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1), guide=pair.color)
         cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle)
         report["pairs"].append({
             "pair": pair.name,
