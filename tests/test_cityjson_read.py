@@ -15,7 +15,7 @@ from recon3d.quality.meshcheck import check_solid
 @pytest.mark.parametrize("name, count, lods, invalid", [
     ("multi_lod.json", 10, {"1.2", "1.3", "2.2"}, 0),
     # CityJSON 1.1, BuildingParts folded into their Building; one solid has a face 1+ cm off its plane (val3dity 203)
-    ("DH_01_subs.city.json", 4, {"2"}, 1),
+    ("DH_01_subs.city.json", 4, {"2"}, 1),     # (read_cityjson(..., parts=True): 9, one per part)
     ("rotterdam_subset.json", 16, set(), 0),      # MultiSurface only: footprints, no solids
 ])
 def test_reads_real_city_models(name, count, lods, invalid):
@@ -47,7 +47,8 @@ def test_export_command_all_formats(delft_run, tmp_path):
         result = CliRunner().invoke(cli, ["export", str(out), "--format", fmt, "-o", str(tmp_path / name)])
         assert result.exit_code == 0, result.output
     seq = (tmp_path / "b.city.jsonl").read_text().splitlines()
-    assert len(seq) == 1 + len(delft_run.city)
+    blocks = delft_run.city.blocks()  # a block and its parts share one feature
+    assert len(seq) == 1 + len(delft_run.city) - sum(len(p) - 1 for p in blocks.values())
     feature_schema = json.loads(shared("schemas/cityjson-2.0.2/cityjsonfeature.min.schema.json").read_text())
     for line in seq[1:]:
         errors = list(jsonschema.Draft7Validator(feature_schema).iter_errors(json.loads(line)))
@@ -56,6 +57,7 @@ def test_export_command_all_formats(delft_run, tmp_path):
     assert not list(jsonschema.Draft7Validator(json.loads(shared(CITYJSON_SCHEMA).read_text())).iter_errors(doc))
     back = read_cityjson(tmp_path / "b.city.jsonl")
     assert len(back) == len(delft_run.city)
+    assert sorted((b.id, b.parent or "") for b in back) == sorted((b.id, b.parent or "") for b in delft_run.city)
     total = sum(b.solids["1"].to_trimesh().volume for b in delft_run.city)
     assert sum(b.solids["1"].to_trimesh().volume for b in back) == pytest.approx(total, rel=1e-4)
     glb = trimesh.load(tmp_path / "b.glb")
@@ -73,3 +75,17 @@ def test_cityjson_footprints_as_input(delft_run):
     for f, b in zip(fps, delft_run.city, strict=True):
         assert f.polygon.symmetric_difference(b.footprint).area < 1e-3 * b.footprint.area  # 2 mm snapping
         assert f.attributes["roof_z"] == pytest.approx(b.roof_z, abs=0.001)
+
+
+def test_building_parts_folded_or_split():
+    """Den Haag: 3 Buildings made of 2-3 BuildingParts each, 1 without parts."""
+    path = shared("citymodels/DH_01_subs.city.json")
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    folded = read_cityjson(path)
+    assert all(b.parent is None for b in folded)
+    split = read_cityjson(path, parts=True)
+    assert len(split) == 9 and sum(b.parent is None for b in split) == 1
+    for b in split:
+        if b.parent is not None:
+            assert doc["CityObjects"][b.id]["type"] == "BuildingPart" and b.id in doc["CityObjects"][b.parent]["children"]
+            assert "roofType" in b.attributes

@@ -121,6 +121,11 @@ class Building:
         says why (a short code such as "no_points" or "too_low").
     attributes : dict
         Extra values written to CityJSON and footprints.geojson.
+    parent : str or None
+        Id of the block this building is a part of, when detection split one connected
+        block of roofs at height jumps (:func:`recon3d.buildings.detect.assign_blocks`);
+        None for a stand-alone building. CityJSON writes the parts of a block as
+        ``BuildingPart`` children of one parent ``Building`` with that id.
     """
 
     id: str
@@ -131,6 +136,7 @@ class Building:
     status: str = "ok"
     reason: str | None = None
     attributes: dict[str, Any] = field(default_factory=dict)
+    parent: str | None = None
 
     @property
     def height(self) -> float:
@@ -152,3 +158,11 @@ class CityModel:
 
     def __iter__(self):
         return iter(self.buildings)
+
+    def blocks(self) -> dict[str, list[Building]]:
+        """The parts of each block, by block id (:attr:`Building.parent`), in model order."""
+        out: dict[str, list[Building]] = {}
+        for b in self.buildings:
+            if b.parent is not None:
+                out.setdefault(b.parent, []).append(b)
+        return out

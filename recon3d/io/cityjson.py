@@ -14,7 +14,15 @@ and validates against the 2.0.2 JSON schema:
   ``geographicalExtent`` in world coordinates, ``referenceDate``, ``title`` and,
   when given, ``identifier`` and ``pointOfContact``;
 - a building that could not be built is still written, with ``"geometry": []`` and
-  its ``status`` / ``reason`` attributes, so a user sees every footprint.
+  its ``status`` / ``reason`` attributes, so a user sees every footprint;
+- the parts of a block that detection split at height jumps (buildings sharing a
+  :attr:`~recon3d.core.city.Building.parent`) are ``BuildingPart`` objects (their own
+  solids and attributes, ``"parents": [block id]``) under one parent ``Building``
+  without geometry (``"children"``, attributes of the whole block:
+  :func:`block_attributes`). In CityJSONSeq a block and its parts share one feature.
+
+:func:`read_cityjson` reads such a file back part by part (see there), so a
+write -> read round trip gives the same buildings with the same ``parent``.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ from recon3d.io import atomic_path
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "block_attributes",
     "building_attributes",
     "cityjson_dict",
     "crs_url",
@@ -98,9 +107,11 @@ def cityjson_dict(city: CityModel, metadata: dict | None = None) -> dict:
     Raises
     ------
     ValueError
-        Two buildings share an id (one would silently replace the other).
+        Two buildings, or a building and a block, share an id (one would silently
+        replace the other).
     """
-    ids = [b.id for b in city.buildings]
+    blocks = city.blocks()
+    ids = [b.id for b in city.buildings] + list(blocks)
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})
         raise ValueError(f"duplicate building ids cannot be written to CityJSON: {dup[:5]}")
@@ -115,10 +126,20 @@ def cityjson_dict(city: CityModel, metadata: dict | None = None) -> dict:
             log.warning("building %s: LoD %s solid has no valid surface, not written", b.id, lod)
         else:
             geometry[b.id].append(geom)
-    objects = {
-        b.id: {"type": "Building", "attributes": building_attributes(b), "geometry": geometry[b.id]}
-        for b in city.buildings
-    }
+    objects: dict[str, dict] = {}
+    for b in city.buildings:
+        obj = {"type": "Building", "attributes": building_attributes(b), "geometry": geometry[b.id]}
+        if b.parent is not None:
+            if b.parent not in objects:  # the block just before its first part
+                parts = blocks[b.parent]
+                objects[b.parent] = {
+                    "type": "Building",
+                    "attributes": block_attributes(parts),
+                    "children": [p.id for p in parts],
+                    "geometry": [],
+                }
+            obj = dict(obj, type="BuildingPart", parents=[b.parent])
+        objects[b.id] = obj
     return {
         "type": "CityJSON",
         "version": "2.0",
@@ -247,6 +268,50 @@ def building_attributes(building: Building) -> dict[str, Any]:
     return out
 
 
+#: Attributes of a block (the parent Building of BuildingParts) that describe the whole
+#: block, not a part: the reader does not pass them on to the parts.
+BLOCK_KEYS = ("ground_z", "roof_z", "height", "status", "reason", "parts", "area")
+
+
+def block_attributes(parts: list[Building]) -> dict[str, Any]:
+    """JSON-safe attributes of the block made of ``parts`` (its parent Building).
+
+    ``parts`` (their number), ``ground_z`` (lowest), ``roof_z`` (highest), ``height``,
+    ``area`` (sum of the footprints), ``status`` ("ok" when every part is, "failed"
+    when none got a solid, else "partial"), and every text attribute on which all
+    parts agree (``source``...). NaN values are omitted.
+    """
+    ground = [b.ground_z for b in parts if math.isfinite(b.ground_z)]
+    roof = [b.roof_z for b in parts if math.isfinite(b.roof_z)]
+    if all(b.status == "ok" for b in parts):
+        status = "ok"
+    elif not any(b.solids for b in parts):
+        status = "failed"
+    else:
+        status = "partial"
+    common = {}
+    first = parts[0].attributes if parts else {}
+    for key, value in first.items():
+        if key in BLOCK_KEYS or not isinstance(value, str):
+            continue
+        if all(b.attributes.get(key) == value for b in parts):
+            common[key] = value
+    own = {
+        "parts": len(parts),
+        "ground_z": min(ground) if ground else None,
+        "roof_z": max(roof) if roof else None,
+        "height": max(roof) - min(ground) if ground and roof else None,
+        "area": round(float(sum(b.footprint.area for b in parts)), 3),
+        "status": status,
+    }
+    out = {}
+    for key, value in {**common, **own}.items():
+        safe = _json_safe(value)
+        if safe is not _OMIT and safe is not None:
+            out[str(key)] = safe
+    return out
+
+
 def _json_safe(value: Any) -> Any:
     """``value`` as plain JSON types; NaN/inf are omitted (top level) or null (nested).
 
@@ -345,20 +410,41 @@ def crs_url(crs: pyproj.CRS | None) -> str | None:
 def write_cityjsonseq(city: CityModel, path: str | Path, *, metadata: dict | None = None) -> None:
     """Write ``city`` as CityJSON Text Sequences (``.city.jsonl``): a header line, then one
     ``CityJSONFeature`` per building with its own vertex list, so large models stream.
+
+    A block (parent ``Building``) and its ``BuildingPart`` children travel in one
+    feature, whose ``id`` is the block's; features follow the order of the model's
+    buildings (a block where its first part is).
     """
     doc = cityjson_dict(city, metadata)
     header = {k: doc[k] for k in ("type", "version", "transform", "metadata")}
     header.update(CityObjects={}, vertices=[])
     vertices = np.asarray(doc["vertices"], dtype=np.int64).reshape(-1, 3)
     lines = [json.dumps(header, ensure_ascii=False, separators=(",", ":"))]
-    for bid, obj in doc["CityObjects"].items():
-        used = sorted({i for g in obj["geometry"] for i in _flatten_indices(g["boundaries"])})
+    objects = doc["CityObjects"]
+    for bid, top in objects.items():
+        if "parents" in top:
+            continue  # written with its parent
+        members = {bid: top, **{c: objects[c] for c in top.get("children", [])}}
+        geoms = [g for obj in members.values() for g in obj["geometry"]]
+        used = sorted({i for g in geoms for i in _flatten_indices(g["boundaries"])})
         remap = {old: new for new, old in enumerate(used)}
-        obj = dict(obj, geometry=[dict(g, boundaries=_reindex(g["boundaries"], remap)) for g in obj["geometry"]])
-        feature = {"type": "CityJSONFeature", "id": bid, "CityObjects": {bid: obj}, "vertices": vertices[used].tolist()}
+        members = {
+            oid: dict(obj, geometry=[_reindexed(g, remap) for g in obj["geometry"]])
+            for oid, obj in members.items()
+        }
+        feature = {
+            "type": "CityJSONFeature",
+            "id": bid,
+            "CityObjects": members,
+            "vertices": vertices[used].tolist(),
+        }
         lines.append(json.dumps(feature, ensure_ascii=False, separators=(",", ":")))
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _reindexed(geometry: dict, remap: dict[int, int]) -> dict:
+    return dict(geometry, boundaries=_reindex(geometry["boundaries"], remap))
 
 
 def _flatten_indices(nested) -> list[int]:
@@ -376,14 +462,36 @@ def _reindex(nested, remap: dict[int, int]):
 # --------------------------------------------------------------------------- reader
 
 
-def read_cityjson(path: str | Path, *, crs: pyproj.CRS | None = None) -> CityModel:
+def read_cityjson(
+    path: str | Path, *, crs: pyproj.CRS | None = None, parts: bool | None = None
+) -> CityModel:
     """Read a CityJSON 1.1 / 2.0 file or a CityJSONSeq (``.jsonl``) into a :class:`CityModel`.
 
     Every ``Building`` becomes one :class:`Building` (its ``BuildingPart`` children
-    included): solids by LoD (``Solid`` geometries; the first shell), a footprint
-    (union of the plan views of its ground surfaces, or of all surfaces when there
-    are no semantics), and its attributes. ``ground_z``/``roof_z`` are taken from
+    included): solids by LoD (``Solid`` geometries; the first shell, the first part's
+    solid when several parts have one of that LoD), a footprint (union of the plan
+    views of its ground surfaces, or of all surfaces when there are no semantics;
+    the largest polygon), and its attributes. ``ground_z``/``roof_z`` are taken from
     the attributes recon3d writes, else from the geometry.
+
+    A block recon3d wrote (a ``Building`` whose ``parts`` attribute is the number of
+    its ``BuildingPart`` children) is read instead as its parts, in file order: one
+    :class:`Building` per part, with the part's id, solids and attributes, the block's
+    attributes it does not have itself (except the block-wide :data:`BLOCK_KEYS`),
+    and ``parent`` set to the block's id; the block's own geometry, if any, is not
+    read. So what :func:`write_cityjson` wrote comes back as the same buildings in
+    the same order (a CityJSONSeq file: grouped by block); a part without geometry
+    (a failed one) is not read, as a stand-alone building without geometry is not.
+
+    Parameters
+    ----------
+    path : str or Path
+    crs : pyproj.CRS, optional
+        Replaces the file's ``referenceSystem``.
+    parts : bool, optional
+        True: every Building with two or more BuildingParts is read as its parts;
+        False: parts are always folded into their Building; None (default): only
+        recon3d's blocks are read as parts.
 
     Raises
     ------
@@ -411,12 +519,27 @@ def read_cityjson(path: str | Path, *, crs: pyproj.CRS | None = None) -> CityMod
     world = np.concatenate(vertex_blocks) * scale + translate if offset else np.zeros((0, 3))
     frame = LocalFrame.around(world.min(axis=0) if len(world) else np.zeros(3))
     local = frame.to_local(world)
-    buildings = [
-        _building(oid, obj, base, objects, local, frame)
-        for oid, (obj, base) in objects.items()
-        if obj.get("type") == "Building"
-    ]
-    buildings = [b for b in buildings if b is not None]
+    split = {
+        oid
+        for oid, (obj, _) in objects.items()
+        if obj.get("type") == "Building" and _read_as_parts(obj, objects, parts)
+    }
+    buildings = []
+    for oid, (obj, base) in objects.items():
+        kind = obj.get("type")
+        if kind == "Building" and oid not in split:
+            b = _building(oid, obj, base, objects, local, frame)
+        elif kind == "BuildingPart" and obj.get("parents") and obj["parents"][0] in split:
+            parent = obj["parents"][0]
+            block_attrs = objects[parent][0].get("attributes", {})
+            inherited = {k: v for k, v in block_attrs.items() if k not in BLOCK_KEYS}
+            b = _building(oid, obj, base, objects, local, frame, inherited)
+            if b is not None:
+                b.parent = parent
+        else:
+            continue
+        if b is not None:
+            buildings.append(b)
     if not buildings:
         raise InputError(f"{path}: no Building with geometry in the file")
     return CityModel(buildings, crs or file_crs, frame, {"source": str(path), "version": str(head.get("version"))})
@@ -445,8 +568,32 @@ def _crs_from_url(url: str | None) -> pyproj.CRS | None:
         return None
 
 
-def _building(oid: str, obj: dict, base: int, objects: dict, local: np.ndarray, frame: LocalFrame) -> Building | None:
-    """One Building from a CityObject and its BuildingPart children (their vertex offsets applied)."""
+def _read_as_parts(obj: dict, objects: dict, parts: bool | None) -> bool:
+    """Whether a Building is read as its BuildingParts (see :func:`read_cityjson`)."""
+    children = [
+        c
+        for c in obj.get("children", [])
+        if c in objects and objects[c][0].get("type") == "BuildingPart"
+    ]
+    if parts is None:
+        count = (obj.get("attributes") or {}).get("parts")
+        return bool(children) and isinstance(count, int) and count == len(children)
+    return parts and len(children) >= 2
+
+
+def _building(
+    oid: str,
+    obj: dict,
+    base: int,
+    objects: dict,
+    local: np.ndarray,
+    frame: LocalFrame,
+    inherited: dict | None = None,
+) -> Building | None:
+    """One Building from a CityObject and its BuildingPart children (their vertex offsets applied).
+
+    ``inherited`` attributes (a block's) come first; the object's own replace them.
+    """
     import shapely
 
     parts = [(obj, base)] + [objects[c] for c in obj.get("children", []) if c in objects]
@@ -473,7 +620,7 @@ def _building(oid: str, obj: dict, base: int, objects: dict, local: np.ndarray, 
     if not polys:
         return None
     footprint = shapely.affinity.translate(max(polys, key=lambda p: p.area), *frame.origin[:2])
-    attrs = dict(obj.get("attributes", {}))
+    attrs = {**(inherited or {}), **obj.get("attributes", {})}
     z = frame.to_world(local[np.unique(np.concatenate([_flat(s) for s in _all_rings(parts)]))])[:, 2] if solids or plans else np.array([np.nan])
     ground_z = float(attrs.pop("ground_z", np.min(z)))
     roof_z = float(attrs.pop("roof_z", np.max(z)))

@@ -358,6 +358,9 @@ def find_buildings(s: RunState) -> None:
     for i, poly in enumerate(polygons):
         attrs[i].update(cells=int(heights.cells[i]), raised_share=round(float(heights.raised_share[i]), 3))
         buildings.append(Building(ids[i], poly, heights.ground_z[i], heights.roof_z[i], attributes=attrs[i]))
+    if s.footprints is None:  # parts of a block split at height jumps: Building + BuildingParts
+        raised = detect.building_mask(s.ndsm, share, cfg, u)
+        detect.assign_blocks(buildings, s.labels, raised, min_shared=u.length(cfg.min_edge))
     lo = s.cloud.bounds[0]
     s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)))
 
