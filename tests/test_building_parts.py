@@ -187,6 +187,9 @@ def test_glb_and_obj_name_parts_by_their_ids(tmp_path):
     write_glb(city, tmp_path / "a.glb")
     scene = trimesh.load(tmp_path / "a.glb")
     assert set(scene.graph.nodes_geometry) == {b.id for b in city}
+    for b in city:
+        extras = scene.geometry[b.id].metadata
+        assert extras.get("parent") == b.parent, extras
     write_obj(city, tmp_path / "a.obj")
     names = [line[2:] for line in (tmp_path / "a.obj").read_text().splitlines() if line.startswith("o ")]
     assert names == [b.id for b in city]

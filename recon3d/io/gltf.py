@@ -80,6 +80,8 @@ def build_scene(city: CityModel) -> trimesh.Scene:
             continue
         mesh = _building_mesh(building.solids[lod])
         extras = {"id": str(building.id), "lod": lod, **building_attributes(building)}
+        if building.parent is not None:
+            extras["parent"] = building.parent  # the block this part belongs to
         mesh.metadata.update(extras)
         name = str(building.id)
         scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
