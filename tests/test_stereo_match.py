@@ -293,3 +293,18 @@ def test_range_outside_the_image_and_bad_parameters():
     with pytest.raises(InputError, match="p2"):
         MatchParams(p1=10, p2=5)
     assert isinstance(InputError("x"), ValueError)
+
+
+def test_photo_consistency_confirms_the_true_disparity_only():
+    from recon3d.stereo.match import photo_consistency
+
+    rng = np.random.default_rng(1)
+    right = cv2.GaussianBlur(rng.uniform(0, 255, (60, 120)).astype(np.float32), (3, 3), 0)
+    left = np.roll(right, 7, axis=1)  # left sees its match at x - 7 in right
+    good = photo_consistency(left, right, np.full(left.shape, 7.0, np.float32))
+    bad = photo_consistency(left, right, np.full(left.shape, 12.0, np.float32))
+    inner = np.s_[5:-5, 20:-5]
+    assert np.median(good[inner]) > 0.95
+    assert np.median(np.abs(bad[inner])) < 0.3
+    holes = np.full(left.shape, np.nan, np.float32)
+    assert np.isnan(photo_consistency(left, right, holes)).all()

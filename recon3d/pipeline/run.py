@@ -76,6 +76,7 @@ class RunState:
     checkpoints: checkpoints_io.CheckPoints | None = None
     reference_classes: np.ndarray | None = None
     dsm: Raster | None = None
+    dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
     dtm: Raster | None = None
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
@@ -303,6 +304,10 @@ def make_dsm(s: RunState) -> None:
     }
     max_cells = int(u.area(hole_area) / res**2)
     s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean")
+    observed = s.cloud.attributes.get("observed")
+    if observed is not None and not observed.all():
+        count = dsm_stage.grid_points(s.cloud.xyz[observed > 0], s.dsm.transform, s.dsm.shape, reducer="count")
+        s.dsm_unobserved = (count == 0) & np.isfinite(s.dsm.data)
 
 
 def classify_ground(s: RunState) -> None:
@@ -321,7 +326,41 @@ def make_dtm(s: RunState) -> None:
         lines, points = s.constraints
         constraints = np.concatenate([dtm_stage.densify_lines(lines, s.dsm.resolution / 2), points])
     s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.dtm_points], s.dsm, noise=noise, constraints=constraints)
+    if s.dsm_unobserved is not None:
+        _lower_unseen_guesses(s, noise)
     s.ndsm = dtm_stage.make_ndsm(s.dsm, s.dtm)
+
+
+def _lower_unseen_guesses(s: RunState, noise: float) -> None:
+    """Stereo DSM cells filled in at a height where every camera would have seen them
+    (and so matched them) are hidden ground: they take the DTM.
+
+    Cells holding no observed point (a matched pixel, or a filled-in one the images
+    agree with) are judged, in regions of at least 4 m2: the few cells the matcher
+    misses on a roof or in a crown are noise, not hidden ground.
+    """
+    from scipy import ndimage
+
+    cameras = s.scene.cameras
+    offset = np.asarray(s.scene.offset)
+
+    def in_frame(i, xyz):
+        uv, depth = cameras[i].project(xyz - offset)
+        w, h = cameras[i].width, cameras[i].height
+        return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+
+    regions, n = ndimage.label(s.dsm_unobserved)
+    area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * s.dsm.resolution**2
+    judged = s.dsm_unobserved & (np.r_[0.0, area][regions] >= s.units.area(4.0))
+    centres = np.array([c.center for c in cameras]) + offset
+    tolerance = max(s.units.height(0.5), 3.0 * noise)
+    seen = dsm_stage.seen_by_all(s.dsm, judged, centres, tolerance=tolerance, in_frame=in_frame)
+    lower = seen & (s.dsm.data > s.dtm.data + tolerance)
+    s.dsm.data[lower] = s.dtm.data[lower]
+    s.auto["dsm.hidden_ground"] = {
+        "value": int(lower.sum()),
+        "reason": "cells no pixel observed, filled in at a height every camera would have seen: set to the DTM",
+    }
 
 
 def find_buildings(s: RunState) -> None:

@@ -30,7 +30,7 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
     report : dict
         Pairs considered, rectification residuals, disparity ranges, point counts.
     """
-    from recon3d.stereo.match import MatchParams, match
+    from recon3d.stereo.match import MatchParams, match, photo_consistency
 
     pairs, candidates = select_pairs(scene.cameras, scene.sparse)
     report = {"candidates": candidates, "pairs": []}
@@ -43,7 +43,10 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
         left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
         right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
         result = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1), guide=pair.color)
-        cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle)
+        # a filled-in disparity the images agree with is as good as a match (steep or
+        # shadowed roof faces); one they contradict is a guess (a hidden courtyard)
+        guessed = result.filled & ~(photo_consistency(left, right, result.disparity) >= 0.4)
+        cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle, guessed=guessed)
         report["pairs"].append({
             "pair": pair.name,
             "vertical_parallax_px": pair.parallax,

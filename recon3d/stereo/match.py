@@ -969,6 +969,35 @@ def _fill_background(disp: np.ndarray) -> np.ndarray:
     return out
 
 
+def photo_consistency(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window: int = 7) -> np.ndarray:
+    """Zero-mean normalised cross-correlation of each left pixel's window with the right
+    image at its disparity (nearest pixel), in [-1, 1]; NaN where the disparity is.
+
+    Parameters
+    ----------
+    left, right : (H, W) array
+        Rectified grey images (NaN nodata allowed).
+    disparity : (H, W) float
+    window : int
+        Odd window size.
+    """
+    h, w = disparity.shape
+    a = np.nan_to_num(np.asarray(left, np.float32))
+    b = np.nan_to_num(np.asarray(right, np.float32))
+    xr = np.clip(np.rint(np.arange(w)[None, :] - np.nan_to_num(disparity)), 0, w - 1).astype(np.intp)
+    b = b[np.arange(h)[:, None], xr]  # the right image warped onto the left by the disparity
+
+    def mean(x):
+        return cv2.boxFilter(x, -1, (window, window))
+
+    ma, mb = mean(a), mean(b)
+    cov = mean(a * b) - ma * mb
+    var = np.maximum((mean(a * a) - ma * ma) * (mean(b * b) - mb * mb), 1e-6)
+    out = (cov / np.sqrt(var)).astype(np.float32)
+    out[~np.isfinite(disparity)] = np.nan
+    return out
+
+
 def _guide(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(H, W, C) float32 guide on a 0..255 scale (NaN set to 0)."""
     g = np.asarray(image, dtype=np.float32)

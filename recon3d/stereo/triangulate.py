@@ -11,7 +11,10 @@ from recon3d.stereo.rectify import RectifiedPair
 __all__ = ["triangulate"]
 
 
-def triangulate(pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarray, *, min_angle_deg: float = 1.0) -> PointCloud:
+def triangulate(
+    pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarray, *, min_angle_deg: float = 1.0,
+    guessed: np.ndarray | None = None,
+) -> PointCloud:
     """Intersect the rays of every valid disparity.
 
     Parameters
@@ -23,13 +26,17 @@ def triangulate(pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarr
         Matching confidence in [0, 1].
     min_angle_deg : float
         Rays meeting at a smaller angle are dropped (depth too uncertain).
+    guessed : (H, W) bool, optional
+        Pixels whose disparity is a guess: filled in rather than matched, and not
+        confirmed by the images.
 
     Returns
     -------
     PointCloud
         xyz in model coordinates (no CRS yet); attributes ``red``, ``green``,
         ``blue`` (uint16), ``quality`` (confidence scaled by the intersection angle's
-        depth precision, in [0, 1]) and ``intersection_angle`` (degrees).
+        depth precision, in [0, 1]), ``intersection_angle`` (degrees) and ``observed``
+        (uint8, 0 for points of guessed pixels; all 1 without ``guessed``).
     """
     valid = np.isfinite(disparity) & pair.valid_left
     rows, cols = np.nonzero(valid)
@@ -54,5 +61,6 @@ def triangulate(pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarr
         "blue": rgb[:, 2],
         "quality": quality.astype(np.float32),
         "intersection_angle": angle[keep].astype(np.float32),
+        "observed": np.ones(int(keep.sum()), np.uint8) if guessed is None else (~guessed[valid][keep]).astype(np.uint8),
     }
     return PointCloud(xyz[keep], attributes)

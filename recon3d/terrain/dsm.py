@@ -14,7 +14,7 @@ from recon3d.core.raster import Raster, grid_for_bounds
 
 log = logging.getLogger(__name__)
 
-__all__ = ["choose_resolution", "fill_small_holes", "grid_points", "make_dsm", "point_spacing"]
+__all__ = ["choose_resolution", "fill_small_holes", "grid_points", "make_dsm", "point_spacing", "seen_by_all"]
 
 #: "Nice" cell sizes, in CRS units, from which the automatic resolution is picked.
 NICE_STEPS = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 20.0)
@@ -158,3 +158,64 @@ def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int, rim: 
     dsm = grid_points(xyz, transform, shape, reducer="max")
     dsm = fill_small_holes(dsm, max_hole_cells, rim=rim)
     return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": "highest point per cell"})
+
+
+def seen_by_all(
+    dsm: Raster, cells: np.ndarray, cameras: np.ndarray, *, tolerance: float, in_frame=None
+) -> np.ndarray:
+    """Which of ``cells``, at their DSM height, every camera would see over the DSM.
+
+    Walks from each cell towards each camera one cell at a time and looks for a DSM
+    cell above the ray (by more than ``tolerance``), until the ray clears the highest
+    cell of the DSM. A stereo DSM cell that no pixel matched but that every camera sees
+    at its filled-in height contradicts the failed match: the surface there is lower,
+    hidden from one view (the floor of a courtyard filled at roof height).
+
+    Parameters
+    ----------
+    dsm : Raster
+    cells : (rows, cols) bool
+        Cells to test.
+    cameras : (m, 3) float
+        Projection centres, in the DSM's CRS coordinates.
+    tolerance : float
+        Height (CRS units) an occluder must stand above the ray.
+    in_frame : callable, optional
+        ``in_frame(i, xyz)`` -> (n,) bool: whether camera ``i`` images the (n, 3)
+        points at all (inside its picture); a point outside a picture is not seen.
+
+    Returns
+    -------
+    (rows, cols) bool
+        True at the tested cells with a finite height that no DSM cell hides from any camera.
+    """
+    z_all = np.where(np.isfinite(dsm.data), dsm.data, -np.inf)
+    rows, cols = np.nonzero(cells & np.isfinite(dsm.data))
+    t = dsm.transform  # north-up grid, as everywhere in recon3d
+    x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
+    z = dsm.data[rows, cols].astype(np.float64)
+    top = float(np.max(z_all))
+    step = dsm.resolution
+    visible = np.ones(rows.size, bool)
+    for i, (cx, cy, cz) in enumerate(np.asarray(cameras, np.float64)):
+        if in_frame is not None:
+            visible &= in_frame(i, np.column_stack([x, y, z]))
+        dx, dy = cx - x, cy - y
+        dist = np.maximum(np.hypot(dx, dy), 1e-9)
+        ux, uy = dx / dist, dy / dist
+        slope = (cz - z) / dist  # rise of the ray per unit of horizontal distance
+        reach = np.minimum(dist, (top - z) / np.maximum(slope, 1e-9))
+        for k in range(1, int(np.ceil(reach.max() / step)) + 1):
+            s = k * step
+            live = visible & (s <= reach)
+            if not live.any():
+                break
+            c = np.floor((x[live] + s * ux[live] - t.c) / t.a).astype(np.int64)
+            r = np.floor((y[live] + s * uy[live] - t.f) / t.e).astype(np.int64)
+            inside = (r >= 0) & (r < z_all.shape[0]) & (c >= 0) & (c < z_all.shape[1])
+            above = np.zeros(live.sum(), bool)
+            above[inside] = z_all[r[inside], c[inside]] > z[live][inside] + s * slope[live][inside] + tolerance
+            visible[np.flatnonzero(live)[above]] = False
+    out = np.zeros(cells.shape, bool)
+    out[rows, cols] = visible
+    return out
