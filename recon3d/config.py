@@ -36,7 +36,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class StereoConfig:
-    """Dense matching of frame stereo pairs.
+    """Dense matching of stereo pairs (frame and satellite).
 
     Attributes
     ----------
@@ -46,11 +46,20 @@ class StereoConfig:
         Smallest ray intersection angle (degrees) for a triangulated point.
     max_parallax : float
         Largest residual vertical parallax (px) accepted after rectification.
+    tile_size : int or None
+        Satellite pairs: largest tile (px of the reference image, at least 128) rectified
+        with its own local affine camera approximation; None: one tile up to 1024 px,
+        800 px tiles beyond.
     """
 
     max_disparities: int = 256
     min_angle: float = 1.0
     max_parallax: float = 1.0
+    tile_size: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.tile_size is not None and self.tile_size < 128:
+            raise InputError(f"stereo.tile_size {self.tile_size}: at least 128 px (or unset for automatic)")
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ def test_toml_file(tmp_path):
         ("dsm.resolution=abc", "is not a valid"),
         ("ground.method='csf'", "ground.method must be"),
         ("dsm.resolution", "expected stage.key=value"),
+        ("stereo.tile_size=10", "at least 128 px"),
     ],
 )
 def test_bad_overrides_name_the_problem(override, message):

@@ -252,7 +252,7 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
     for cam in (a, b):
         with rasterio.open(cam.image_path) as src:
             images.append(src.read(1, masked=True).astype(np.float32).filled(np.nan))
-    cloud, report = dense_cloud_rpc(a, b, *images)
+    cloud, report = dense_cloud_rpc(a, b, *images, tile_size=s.config.stereo.tile_size)
     report["crs"] = {"value": crs_name(cloud.crs), "reason": "UTM zone of the scene centre"}
     if s.crs is not None:
         t = pyproj.Transformer.from_crs(cloud.crs, s.crs, always_xy=True)

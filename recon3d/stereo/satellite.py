@@ -1,17 +1,26 @@
-"""Satellite (RPC) stereo: affine epipolar rectification, matching and ray intersection.
+"""Satellite (RPC) stereo: tiled affine epipolar rectification, matching and ray intersection.
 
-Pushbroom images have no single projection centre, but over a crop of a few thousand
-pixels each RPC is very close to an affine camera (the s2p observation). The epipolar
-direction is then constant over the crop: a pixel of one image, lifted through the
-RPC heights, traces a straight line in the other. Both images are turned so that
-these lines are rows, the second one fitted (affine, least squares) so that
+Pushbroom images have no single projection centre, but over a few hundred to a few
+thousand pixels each RPC is very close to an affine camera (the s2p observation). The
+epipolar direction is then constant over that region: a pixel of one image, lifted
+through the RPC heights, traces a straight line in the other. Both images are turned so
+that these lines are rows, the second one fitted (affine, least squares) so that
 corresponding points share a row, then matched with the frame-stereo matcher. Each
 match is intersected by finding the height at which the first image's pixel projects
 onto its match in the second image.
+
+Over a large scene the affine approximation drifts, so :func:`dense_cloud_rpc` works on
+tiles of the reference image, as s2p does: each tile (its core plus an overlap margin)
+gets its own affine approximation of both cameras, its own relative bias from the tie
+points inside it, its own rectification, matching and intersection; only points whose
+reference pixel lies in the tile's core are kept, so tiles never duplicate points. The
+residual vertical parallax of feature matches after rectification is measured per tile
+and over all tiles and reported.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -25,7 +34,24 @@ from recon3d.io.rpc import RPCCamera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SatellitePair", "absolute_shift", "dense_cloud_rpc", "rectify_rpc_pair", "utm_crs"]
+__all__ = [
+    "SatellitePair",
+    "absolute_shift",
+    "auto_tile_size",
+    "dense_cloud_rpc",
+    "rectify_rpc_pair",
+    "tile_grid",
+    "utm_crs",
+]
+
+SINGLE_TILE_MAX = 1024
+"""Images up to this many pixels on their longer side are rectified as one tile by default."""
+AUTO_TILE = 800
+"""Largest tile core (px) chosen by :func:`auto_tile_size` for larger images."""
+TILE_MARGIN = 32
+"""Default overlap margin (px) around each tile core: matching context at the core's edges."""
+MIN_TIE_POINTS = 10
+"""Fewer tie points than this in a tile: the whole image's relative bias is used instead."""
 
 
 @dataclass
@@ -42,9 +68,24 @@ class SatellitePair:
         Height interval (ellipsoidal metres) the disparity range covers.
     disparity_range : (2,) int
     parallax : dict
-        Residual vertical parallax of SIFT matches (px) after rectification.
+        Residual vertical parallax of SIFT matches (px) after rectification:
+        ``{"median", "p90", "rms", "n", "rejected"}``, over the matches whose left
+        point falls in ``core`` (all of them without a core).
     shift : (2,) float
         Relative bias of the second RPC (crop pixels, col and row) removed using tie points.
+    bias_ties : int
+        Tie points the bias was estimated from (0 when it was not estimated here).
+    bias_from : str
+        ``"tie points"`` (estimated from this pair's tie points), ``"fallback"`` (too few
+        of them: the bias given by the caller) or ``"none"`` (no correction).
+    parallax_samples : (k,) float
+        The vertical parallaxes (px) summarised in ``parallax``, for pooling over tiles.
+    disparity_mid : float
+        Disparity (px) of the middle of the height range in this pair's frame: each
+        pair has its own frame, so ``disparity_range - disparity_mid`` compares across tiles.
+    affine_residual_px : float
+        Largest row difference (px) left by the affine approximation on a 15 x 15 grid of
+        RPC correspondences over the crop at 5 heights: what tiling keeps small.
     """
 
     left: np.ndarray
@@ -55,6 +96,11 @@ class SatellitePair:
     disparity_range: tuple[int, int]
     parallax: dict
     shift: np.ndarray
+    bias_ties: int = 0
+    bias_from: str = "tie points"
+    parallax_samples: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    disparity_mid: float = 0.0
+    affine_residual_px: float = 0.0
 
 
 def utm_crs(lon: float, lat: float) -> pyproj.CRS:
@@ -63,6 +109,115 @@ def utm_crs(lon: float, lat: float) -> pyproj.CRS:
     return pyproj.CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
 
+# ---------------------------------------------------------------------------- tiles
+def auto_tile_size(width: int, height: int) -> int:
+    """Default tile core size (px) for an image: one tile up to ``SINGLE_TILE_MAX`` px.
+
+    Larger images are cut into tiles of at most ``AUTO_TILE`` px, a size over which a
+    Pleiades-like pushbroom camera stays affine to well under a pixel.
+    """
+    longest = max(int(width), int(height))
+    return longest if longest <= SINGLE_TILE_MAX else AUTO_TILE
+
+
+def tile_grid(
+    width: int, height: int, tile_size: int, margin: int = TILE_MARGIN
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cut an image into tiles: cores that partition it, boxes that add an overlap margin.
+
+    Each axis is split into ``ceil(n / tile_size)`` cores of equal size (within a
+    pixel), in row-major order (top row of tiles first, left to right).
+
+    Parameters
+    ----------
+    width, height : int
+        Image size in pixels.
+    tile_size : int
+        Largest core size (px) along each axis.
+    margin : int
+        Pixels added around each core on every side (clipped to the image).
+
+    Returns
+    -------
+    cores, boxes : (n, 4) int64
+        Half-open pixel boxes ``(col0, row0, col1, row1)``: ``image[row0:row1, col0:col1]``.
+        Cores cover every pixel exactly once; each box contains its core.
+    """
+    if tile_size < 1 or width < 1 or height < 1:
+        raise ValueError(f"tile_grid: need positive sizes, got {width} x {height}, tile {tile_size}")
+
+    def edges(n: int) -> np.ndarray:
+        k = -(-n // int(tile_size))
+        return np.round(np.arange(k + 1) * (n / k)).astype(np.int64)
+
+    ex, ey = edges(int(width)), edges(int(height))
+    r0, c0 = np.meshgrid(ey[:-1], ex[:-1], indexing="ij")
+    r1, c1 = np.meshgrid(ey[1:], ex[1:], indexing="ij")
+    cores = np.column_stack([c0.ravel(), r0.ravel(), c1.ravel(), r1.ravel()])
+    limit = np.array([width, height, width, height])
+    boxes = np.clip(cores + np.array([-margin, -margin, margin, margin]), 0, limit)
+    return cores, boxes
+
+
+def _in_core(p: np.ndarray, core, width: int, height: int) -> np.ndarray:
+    """(k,) bool: crop pixels p (k, 2) (col, row) whose pixel lies in the half-open core.
+
+    A pixel (i, j) covers [i - 0.5, i + 0.5); a core's inner edges are cut there, its
+    edges on the image border keep today's rule for a whole image: ``0 <= p <= size - 1``.
+    """
+    c0, r0, c1, r1 = (int(v) for v in core)
+    keep = np.ones(len(p), bool)
+    for axis, lo, hi, size in ((0, c0, c1, width), (1, r0, r1, height)):
+        v = p[:, axis]
+        keep &= (v >= lo - 0.5) if lo > 0 else (v >= 0)
+        keep &= (v < hi - 0.5) if hi < size else (v <= size - 1)
+    return keep
+
+
+def _sub_camera(cam: RPCCamera, box, name: str) -> RPCCamera:
+    """The camera of the crop ``image[row0:row1, col0:col1]`` of ``cam``'s image."""
+    c0, r0, c1, r1 = (int(v) for v in box)
+    return dataclasses.replace(
+        cam, width=c1 - c0, height=r1 - r0, col0=cam.col0 + c0, row0=cam.row0 + r0, name=name
+    )
+
+
+def _footprint_box(a: RPCCamera, b: RPCCamera, box, shift: np.ndarray, margin: int) -> np.ndarray:
+    """Half-open box (col0, row0, col1, row1) of b's image seeing a's box over the height range.
+
+    A 5 x 5 grid over the box at three heights is carried to b, the bias ``shift``
+    added, the bounding box widened by ``margin`` and clipped to b's image.
+
+    Raises
+    ------
+    InputError
+        When the box does not fall on b's image.
+    """
+    c0, r0, c1, r1 = (float(v) for v in box)
+    rows, cols = np.meshgrid(np.linspace(r0, r1 - 1, 5), np.linspace(c0, c1 - 1, 5), indexing="ij")
+    h0, h1 = a.model.height_range
+    rr = np.broadcast_to(rows.ravel(), (3, rows.size)).ravel()
+    cc = np.broadcast_to(cols.ravel(), (3, cols.size)).ravel()
+    hh = np.repeat(np.linspace(h0, h1, 3), rows.size)
+    lon, lat = a.localize(rr, cc, hh)
+    r2, c2 = b.project(lon, lat, hh)
+    ok = np.isfinite(r2) & np.isfinite(c2)
+    if not ok.any():
+        raise InputError(f"{a.name}: the tile does not project onto {b.name}")
+    c2, r2 = c2[ok] + shift[0], r2[ok] + shift[1]
+    out = np.array([
+        np.floor(c2.min()) - margin,
+        np.floor(r2.min()) - margin,
+        np.ceil(c2.max()) + margin + 1,
+        np.ceil(r2.max()) + margin + 1,
+    ])
+    out = np.clip(out, 0, [b.width, b.height, b.width, b.height]).astype(np.int64)
+    if out[2] - out[0] < 16 or out[3] - out[1] < 16:
+        raise InputError(f"images {a.name} and {b.name}: the tile's footprints do not overlap")
+    return out
+
+
+# ------------------------------------------------------------------ rectification
 def _correspondences(a: RPCCamera, b: RPCCamera, heights: np.ndarray, n: int = 15):
     """Crop pixels (col, row) of a grid over ``a`` and of the same ground points in ``b``, per height.
 
@@ -88,13 +243,25 @@ def _direction(p_fixed_moving: np.ndarray, n_heights: int) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
-def rectify_rpc_pair(a: RPCCamera, b: RPCCamera, image_a: np.ndarray, image_b: np.ndarray) -> SatellitePair:
-    """Affine epipolar rectification of two RPC crops, with the relative RPC bias removed.
+def _epipolar_geometry(a: RPCCamera, b: RPCCamera):
+    """Checks and sampled correspondences of a pair: the part of rectification without images.
+
+    Returns
+    -------
+    heights : (5,) float
+        Sampled heights over the RPC's height range.
+    p1, p2 : (k, 2) float
+        Crop pixels (col, row) of a grid over ``a`` and their images in ``b``, per height.
+    hh : (k,) float
+        Height of each pair.
+    d1, d2 : (2,) float
+        Unit epipolar directions in ``a`` and in ``b``.
 
     Raises
     ------
     InputError
-        When the crops do not overlap, or the images are the same view (no parallax).
+        When the crops lie outside their RPC domain or do not overlap, or the images are
+        the same view (no parallax).
     """
     h0, h1 = a.model.height_range
     heights = np.linspace(h0, h1, 5)
@@ -117,24 +284,114 @@ def rectify_rpc_pair(a: RPCCamera, b: RPCCamera, image_a: np.ndarray, image_b: n
             f"images {a.name} and {b.name}: only {parallax_px:.1f} px of parallax over {h0:.0f}-{h1:.0f} m; "
             "the two images see the ground from the same direction (identical images?)"
         )
-    shift = _relative_bias(a, b, image_a, image_b, d2)
+    return heights, p1, p2, hh, d1, d2
+
+
+def rectify_rpc_pair(
+    a: RPCCamera,
+    b: RPCCamera,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    *,
+    ties: tuple[np.ndarray, np.ndarray] | None = None,
+    fallback_shift: np.ndarray | None = None,
+    core=None,
+) -> SatellitePair:
+    """Affine epipolar rectification of two RPC crops, with the relative RPC bias removed.
+
+    Parameters
+    ----------
+    a, b : RPCCamera
+        Cameras of the two crops (``a`` is the reference).
+    image_a : (a.height, a.width) float
+    image_b : (b.height, b.width) float
+        The crops, NaN = no data.
+    ties : ((k, 2) float, (k, 2) float) or None
+        Tie points (col, row) in ``a`` and in ``b``; None: SIFT on the two images.
+    fallback_shift : (2,) float or None
+        Bias used when there are fewer than ``MIN_TIE_POINTS`` tie points (None: no
+        correction).
+    core : (4,) int or None
+        Box (col0, row0, col1, row1) of ``a``: the parallax is measured on the
+        features whose left point lies in it (None: everywhere).
+
+    Returns
+    -------
+    SatellitePair
+
+    Raises
+    ------
+    InputError
+        When the crops do not overlap, or the images are the same view (no parallax).
+    """
+    heights, p1, p2, hh, d1, d2 = _epipolar_geometry(a, b)
+    h0, h1 = float(heights[0]), float(heights[-1])
+    if ties is None:
+        ties = _tie_points(image_a, image_b)
+    shift, n_ties = _bias_from_ties(a, b, *ties, d2)
+    bias_from = "tie points"
+    if shift is None:
+        if fallback_shift is None:
+            log.warning("RPC pair %s-%s: %d tie points, no bias correction", a.name, b.name, n_ties)
+            shift, bias_from = np.zeros(2), "none"
+        else:
+            log.info("RPC pair %s-%s: %d tie points, the whole image's bias used", a.name, b.name, n_ties)
+            shift, bias_from = np.asarray(fallback_shift, float), "fallback"
     p2 = p2 + shift
+    mid = hh == heights[len(heights) // 2]
+    A1, A2 = _affine_maps(p1, p2, mid, d1)
+    A1, A2, size = _frame(A1, A2, a, b)
+    left = _warp(image_a, A1, size)
+    right = _warp(image_b, A2, size)
+    q1, q2 = _apply(A1, p1), _apply(A2, p2)
+    d = q1[:, 0] - q2[:, 0]
+    affine_residual = float(np.abs(q1[:, 1] - q2[:, 1]).max())  # the affine cameras' own error
+    lo, hi = np.floor(d.min()) - 4, np.ceil(d.max()) + 4
+    samples, rejected = _parallax_samples(left, right, A1, a, core)
+    parallax = _parallax_summary(samples, rejected)
+    log.info(
+        "RPC pair %s-%s: disparity %d..%d, vertical parallax %s (affine model %.3f px)",
+        a.name, b.name, lo, hi, parallax, affine_residual,
+    )
+    d_mid = float(np.median(d[mid]))
+    return SatellitePair(
+        left, right, A1, A2, (h0, h1), (int(lo), int(hi)), parallax, shift,
+        n_ties, bias_from, samples, d_mid, affine_residual,
+    )
+
+
+def _affine_maps(p1: np.ndarray, p2: np.ndarray, mid: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Affine epipolar maps of both images, before :func:`_frame`.
+
+    ``a`` is turned so that its epipolar direction ``d1`` is the x axis; ``b``'s map is
+    fitted (least squares) so that every correspondence lands on the same row, and the
+    points of the middle height on the same column (zero disparity there).
+
+    Parameters
+    ----------
+    p1, p2 : (k, 2) float
+        Corresponding pixels (col, row) in ``a`` and ``b``, over several heights; ``p2``
+        where b's image shows the points (RPC projection plus the relative bias).
+    mid : (k,) bool
+        Correspondences at the middle height.
+    d1 : (2,) float
+        Unit epipolar direction in ``a``.
+
+    Returns
+    -------
+    A1, A2 : (2, 3) float
+        Maps from image pixels (col, row) to rectified (x, y). A2 takes b's image pixels
+        as they are: the bias is in ``p2`` already (removing it again, as an earlier
+        version did, doubled the correction and left its size, 0.5 px on the Giza pair,
+        as vertical parallax).
+    """
     R1 = np.array([d1, [-d1[1], d1[0]]])
     A1 = np.column_stack([R1, np.zeros(2)])
     x1 = p1 @ R1.T
     design = np.column_stack([p2, np.ones(len(p2))])
     y_row = np.linalg.lstsq(design, x1[:, 1], rcond=None)[0]  # same row as in a, for every height
-    mid = hh == heights[len(heights) // 2]
     x_row = np.linalg.lstsq(design[mid], x1[mid, 0], rcond=None)[0]  # zero disparity at the middle height
-    A2 = np.array([x_row, y_row]) - np.array([[0, 0, shift @ x_row[:2]], [0, 0, shift @ y_row[:2]]])
-    A1, A2, size = _frame(A1, A2, a, b)
-    left = _warp(image_a, A1, size)
-    right = _warp(image_b, A2, size)
-    d = _apply(A1, p1)[:, 0] - _apply(A2, p2 - shift)[:, 0]
-    lo, hi = np.floor(d.min()) - 4, np.ceil(d.max()) + 4
-    parallax = _measure_parallax(left, right)
-    log.info("RPC pair %s-%s: disparity %d..%d, vertical parallax %s", a.name, b.name, lo, hi, parallax)
-    return SatellitePair(left, right, A1, A2, (h0, h1), (int(lo), int(hi)), parallax, shift)
+    return A1, np.array([x_row, y_row])
 
 
 def _overlap(p2: np.ndarray, b: RPCCamera) -> bool:
@@ -142,35 +399,70 @@ def _overlap(p2: np.ndarray, b: RPCCamera) -> bool:
     return inside.mean() > 0.1
 
 
-def _relative_bias(a: RPCCamera, b: RPCCamera, image_a: np.ndarray, image_b: np.ndarray, d2: np.ndarray) -> np.ndarray:
-    """Shift (col, row) of b's RPC across the epipolar direction, from SIFT tie points.
+def _tie_points(
+    image_a: np.ndarray, image_b: np.ndarray, nfeatures: int = 3000
+) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT tie points (Lowe ratio 0.7) between two crops.
+
+    Returns
+    -------
+    t1, t2 : (k, 2) float
+        Pixel (col, row) in image_a and in image_b; k = 0 when either has no features.
+    """
+    g1, g2 = _to8(image_a), _to8(image_b)
+    sift = cv2.SIFT_create(nfeatures=int(nfeatures))
+    k1, s1 = sift.detectAndCompute(g1, None)
+    k2, s2 = sift.detectAndCompute(g2, None)
+    if s1 is None or s2 is None or len(k1) < 2 or len(k2) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(s1, s2, k=2)
+    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.7 * m[1].distance]
+    t1 = np.array([k1[m.queryIdx].pt for m in good], float).reshape(-1, 2)
+    t2 = np.array([k2[m.trainIdx].pt for m in good], float).reshape(-1, 2)
+    return t1, t2
+
+
+def _bias_from_ties(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, d2: np.ndarray):
+    """Shift (col, row) of b's RPC across the epipolar direction, from tie points.
 
     RPCs of one pair disagree by a near-constant offset; only its component across the
     epipolar lines matters for rectification (along them it is a height offset).
+
+    Parameters
+    ----------
+    t1, t2 : (k, 2) float
+        Tie points (col, row) in ``a``'s and ``b``'s crops.
+    d2 : (2,) float
+        Unit epipolar direction in ``b``.
+
+    Returns
+    -------
+    shift : (2,) float or None
+        None when there are fewer than ``MIN_TIE_POINTS`` usable tie points.
+    n : int
+        Tie points used (all of them when too few).
     """
-    g1, g2 = _to8(image_a), _to8(image_b)
-    sift = cv2.SIFT_create(nfeatures=3000)
-    k1, s1 = sift.detectAndCompute(g1, None)
-    k2, s2 = sift.detectAndCompute(g2, None)
-    if s1 is None or s2 is None:
-        return np.zeros(2)
-    good = [m[0] for m in cv2.BFMatcher(cv2.NORM_L2).knnMatch(s1, s2, k=2) if len(m) == 2 and m[0].distance < 0.7 * m[1].distance]
-    if len(good) < 10:
-        log.warning("RPC pair %s-%s: %d tie points, no bias correction", a.name, b.name, len(good))
-        return np.zeros(2)
-    t1 = np.array([k1[m.queryIdx].pt for m in good])
-    t2 = np.array([k2[m.trainIdx].pt for m in good])
+    if len(t1) < MIN_TIE_POINTS:
+        return None, len(t1)
     mid = float(np.mean(a.model.height_range))
     lon, lat = a.localize(t1[:, 1], t1[:, 0], np.full(len(t1), mid))
     r2, c2 = b.project(lon, lat, np.full(len(t1), mid))
     residual = t2 - np.column_stack([c2, r2])
     across = np.array([-d2[1], d2[0]])
     offsets = residual @ across
+    offsets = offsets[np.isfinite(offsets)]
+    if len(offsets) < MIN_TIE_POINTS:
+        return None, len(offsets)
     med = np.median(offsets)
     keep = np.abs(offsets - med) < 3.0
+    if keep.sum() < MIN_TIE_POINTS:
+        return None, int(keep.sum())
     shift = across * float(np.median(offsets[keep]))
-    log.info("RPC pair %s-%s: relative bias %.2f px across the epipolar lines (%d tie points)", a.name, b.name, med, keep.sum())
-    return shift
+    log.info(
+        "RPC pair %s-%s: relative bias %.2f px across the epipolar lines (%d tie points)",
+        a.name, b.name, med, keep.sum(),
+    )
+    return shift, int(keep.sum())
 
 
 def _to8(image: np.ndarray) -> np.ndarray:
@@ -203,49 +495,273 @@ def _warp(image: np.ndarray, A: np.ndarray, size) -> np.ndarray:
     return out
 
 
-def _measure_parallax(left: np.ndarray, right: np.ndarray) -> dict:
-    from recon3d.stereo.rectify import measure_parallax
+def _parallax_samples(
+    left: np.ndarray, right: np.ndarray, A1: np.ndarray, a: RPCCamera, core=None, max_features: int = 4000
+) -> tuple[np.ndarray, int]:
+    """Vertical parallaxes (px) of SIFT matches (Lowe ratio 0.75) between rectified images.
 
-    return measure_parallax(_to8(left), _to8(right))
+    The method of :func:`recon3d.stereo.rectify.measure_parallax` (matches more than 4 px
+    off the row are mismatches), restricted to the matches whose left point maps back
+    into ``core`` of ``a`` (see :func:`_in_core`), so that overlapping tiles do not
+    count a feature twice.
+
+    Returns
+    -------
+    dy : (k,) float
+        Absolute row differences of the kept matches.
+    rejected : int
+        Matches (in the core) more than 4 px off the row.
+    """
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    ka, da = sift.detectAndCompute(_to8(left), None)
+    kb, db = sift.detectAndCompute(_to8(right), None)
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return np.zeros(0), 0
+    matches = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+    good = [m[0] for m in matches if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
+    pa = np.array([ka[m.queryIdx].pt for m in good], float).reshape(-1, 2)
+    pb = np.array([kb[m.trainIdx].pt for m in good], float).reshape(-1, 2)
+    if core is not None:
+        inside = _in_core(_apply(_invert(A1), pa), core, a.width, a.height)
+        pa, pb = pa[inside], pb[inside]
+    dy = np.abs(pa[:, 1] - pb[:, 1])
+    keep = dy <= 4.0
+    return dy[keep], int((~keep).sum())
 
 
-def dense_cloud_rpc(a: RPCCamera, b: RPCCamera, image_a: np.ndarray, image_b: np.ndarray) -> tuple[PointCloud, dict]:
-    """Rectify, match and intersect an RPC pair into a cloud in the UTM zone of the scene.
+def _parallax_summary(dy: np.ndarray, rejected: int) -> dict:
+    """``{"median", "p90", "rms", "n", "rejected"}`` of vertical parallaxes (px), as in rectify."""
+    if dy.size == 0:
+        nan = float("nan") if rejected == 0 else float("inf")
+        return {"median": nan, "p90": nan, "rms": nan, "n": 0, "rejected": int(rejected)}
+    return {
+        "median": round(float(np.median(dy)), 3),
+        "p90": round(float(np.percentile(dy, 90)), 3),
+        "rms": round(float(np.sqrt(np.mean(dy**2))), 3),
+        "n": int(dy.size),
+        "rejected": int(rejected),
+    }
+
+
+# ------------------------------------------------------------------ dense cloud
+def dense_cloud_rpc(
+    a: RPCCamera,
+    b: RPCCamera,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    *,
+    tile_size: int | None = None,
+    margin: int = TILE_MARGIN,
+) -> tuple[PointCloud, dict]:
+    """Rectify, match and intersect an RPC pair, tile by tile, into a cloud in its UTM zone.
+
+    The reference image ``a`` is cut by :func:`tile_grid`. Each tile (core + margin) is
+    rectified with its own local affine approximation of both cameras (over the tile's
+    footprint and the RPC height range) and its own relative bias (from the tie points
+    inside it; the whole image's when it has fewer than ``MIN_TIE_POINTS``), matched
+    and intersected; the points whose reference pixel falls in the tile's core are kept
+    and the tiles concatenated in row-major order. A tile that cannot be processed (no
+    overlap, no texture, nothing matched) is skipped with a warning.
+
+    Parameters
+    ----------
+    a, b : RPCCamera
+        Cameras of the two crops; ``a`` is the reference.
+    image_a : (a.height, a.width) float
+    image_b : (b.height, b.width) float
+        The crops, NaN = no data.
+    tile_size : int or None
+        Largest tile core (px); None: :func:`auto_tile_size` (one tile for images up to
+        ``SINGLE_TILE_MAX`` px, the whole-image rectification of earlier versions).
+    margin : int
+        Overlap margin (px) around each core, in the reference image.
 
     Returns
     -------
     cloud : PointCloud
-        x, y in WGS 84 / UTM (metres), z ellipsoidal height (metres); ``quality``.
+        (n, 3): x, y in WGS 84 / UTM (metres), z ellipsoidal height (metres); ``quality``.
     report : dict
-        Bias, residual vertical parallax, disparity range, density.
+        Whole-image relative bias, residual vertical parallax pooled over the tiles
+        (median, p90, rms, n, rejected), the largest affine-model residual
+        (``affine_residual_px``, see :class:`SatellitePair`), disparity range (the tile's for one tile; for
+        several, the union relative to each tile's middle-height disparity), height
+        interval, matched percentage (rectified pixels of the tile cores matched before
+        gap filling; pixels off the reference image not counted), point count, ``"tiles"``:
+        tile size, margin, count, failures and a per-tile record (core box, bias,
+        parallax, affine residual, disparity range, matched percentage, points).
+
+    Raises
+    ------
+    InputError
+        When the crops lie outside their RPC domain or do not overlap, the images are
+        the same view, or no tile could be processed.
+    """
+    if image_a.shape[:2] != (a.height, a.width) or image_b.shape[:2] != (b.height, b.width):
+        raise ValueError("dense_cloud_rpc: image shapes do not match their cameras")
+    _, _, _, _, _, d2 = _epipolar_geometry(a, b)  # the whole pair's checks, with today's messages
+    size = auto_tile_size(a.width, a.height) if tile_size is None else int(tile_size)
+    cores, boxes = tile_grid(a.width, a.height, size, margin)
+    area = a.width * a.height
+    # 3000 SIFT features up to the single-tile size, as many per pixel beyond: tiles keep ties
+    nfeatures = max(3000, int(3000 * area / SINGLE_TILE_MAX**2))
+    t1, t2 = _tie_points(image_a, image_b, nfeatures=nfeatures)
+    whole_shift, n_ties = _bias_from_ties(a, b, t1, t2, d2)  # None: too few tie points
+    pieces, records, failures, samples, rejected = [], [], [], [], 0
+    heights = a.model.height_range
+    for k, (core, box) in enumerate(zip(cores, boxes)):
+        try:
+            piece, pair, (n_matched, n_core) = _tile_points(
+                a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin
+            )
+        except InputError as exc:
+            log.warning(
+                "RPC pair %s-%s: tile %d of %d (core %s) skipped: %s",
+                a.name, b.name, k, len(cores), core.tolist(), exc,
+            )
+            failures.append({"tile": k, "core": core.tolist(), "reason": str(exc)})
+            continue
+        pieces.append(piece)
+        heights = pair.heights
+        samples.append(pair.parallax_samples)
+        rejected += pair.parallax["rejected"]
+        records.append(
+            {
+                "tile": k,
+                "core": core.tolist(),
+                "bias_px": np.round(pair.shift, 3).tolist(),
+                "bias_from": pair.bias_from,
+                "bias_tie_points": pair.bias_ties,
+                "vertical_parallax_px": pair.parallax,
+                "disparity_range": list(pair.disparity_range),
+                "disparity_mid": round(pair.disparity_mid, 2),
+                "affine_residual_px": round(pair.affine_residual_px, 4),
+                "matched_percent": round(100.0 * n_matched / max(n_core, 1), 2),
+                "core_samples": n_core,
+                "matched_samples": n_matched,
+                "points": int(len(piece[0])),
+            }
+        )
+    if not pieces:
+        reasons = "; ".join(sorted({f["reason"] for f in failures}))
+        raise InputError(f"images {a.name} and {b.name}: no tile could be matched ({reasons})")
+    lon, lat, h, conf = (np.concatenate([p[i] for p in pieces]) for i in range(4))
+    crs = utm_crs(float(np.nanmedian(lon)), float(np.nanmedian(lat)))
+    east, north = pyproj.Transformer.from_crs(4326, crs, always_xy=True).transform(lon, lat)
+    cloud = PointCloud(np.column_stack([east, north, h]), {"quality": conf.astype(np.float32)}, crs)
+    n_core = sum(r["core_samples"] for r in records)
+    matched_percent = round(100.0 * sum(r["matched_samples"] for r in records) / max(n_core, 1), 2)
+    report = {
+        "relative_bias_px": np.round(np.zeros(2) if whole_shift is None else whole_shift, 3).tolist(),
+        "vertical_parallax_px": _parallax_summary(np.concatenate(samples), rejected),
+        "affine_residual_px": round(max(r["affine_residual_px"] for r in records), 4),
+        "disparity_range": _disparity_union(records),
+        "height_interval_m": [float(heights[0]), float(heights[1])],
+        "matched_percent": matched_percent,
+        "points": len(cloud),
+        "heights": "ellipsoidal (WGS 84), as the RPCs give them",
+        "tiles": {
+            "tile_size_px": size,
+            "margin_px": int(margin),
+            "count": int(len(cores)),
+            "failed": len(failures),
+            "failures": failures,
+            "per_tile": records,
+        },
+    }
+    if len(cores) > 1:
+        log.info(
+            "RPC pair %s-%s: %d tiles of <= %d px (%d failed), vertical parallax %s, %d points",
+            a.name, b.name, len(cores), size, len(failures), report["vertical_parallax_px"], len(cloud),
+        )
+    return cloud, report
+
+
+def _disparity_union(records: list[dict]) -> list[int]:
+    """The searched disparity range: the tile's for one tile; for several, the union of the
+    tiles' ranges each taken relative to its middle-height disparity (tiles have their own
+    rectified frames), so that its width is the parallax range of the whole scene."""
+    if len(records) == 1:
+        return list(records[0]["disparity_range"])
+    lo = min(r["disparity_range"][0] - r["disparity_mid"] for r in records)
+    hi = max(r["disparity_range"][1] - r["disparity_mid"] for r in records)
+    return [int(np.floor(lo)), int(np.ceil(hi))]
+
+
+def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin):
+    """Rectify, match and intersect one tile; the points of its core.
+
+    Parameters
+    ----------
+    core, box : (4,) int
+        The tile's core and box (col0, row0, col1, row1) in ``a``'s crop.
+    ties : ((m, 2) float, (m, 2) float)
+        The whole pair's tie points (col, row) in ``a`` and ``b``.
+    whole_shift : (2,) float or None
+        The whole pair's bias, used when the tile has too few tie points (None: unknown).
+
+    Returns
+    -------
+    piece : tuple of four (n,) arrays
+        lon, lat (degrees), ellipsoidal height (m) and matching confidence of the
+        tile's core points, finite, in the matcher's (row-major rectified) order.
+    pair : SatellitePair
+    matched, samples : int
+        Rectified pixels that fall in the core: matched (before gap filling), and in all.
+
+    Raises
+    ------
+    InputError
+        When the tile has no overlap, no texture or no match.
     """
     from recon3d.stereo.match import MatchParams, match
 
-    pair = rectify_rpc_pair(a, b, image_a, image_b)
+    whole = n_tiles == 1
+    c0, r0, c1, r1 = (int(v) for v in box)
+    if whole:
+        sa, sb, bbox = a, b, np.array([0, 0, b.width, b.height])
+    else:
+        sa = _sub_camera(a, box, f"{a.name}[tile {k}]")
+        shift = np.zeros(2) if whole_shift is None else whole_shift
+        bbox = _footprint_box(sa, b, (0, 0, sa.width, sa.height), shift, margin)
+        sb = _sub_camera(b, bbox, f"{b.name}[tile {k}]")
+    tile_a = image_a[r0:r1, c0:c1]
+    tile_b = image_b[bbox[1] : bbox[3], bbox[0] : bbox[2]]
+    for name, img in ((sa.name, tile_a), (sb.name, tile_b)):
+        v = img[np.isfinite(img)]
+        if v.size < 0.1 * img.size or v.size == 0 or float(v.max() - v.min()) <= 0:
+            raise InputError(f"{name}: no texture (no data or constant)")
+    t1, t2 = ties
+    sel = (
+        (t1[:, 0] >= c0) & (t1[:, 0] < c1) & (t1[:, 1] >= r0) & (t1[:, 1] < r1)
+        & (t2[:, 0] >= bbox[0]) & (t2[:, 0] < bbox[2]) & (t2[:, 1] >= bbox[1]) & (t2[:, 1] < bbox[3])
+    )
+    local_ties = (t1[sel] - [c0, r0], t2[sel] - bbox[:2])
+    local_core = np.asarray(core) - [c0, r0, c0, r0]
+    pair = rectify_rpc_pair(
+        sa, sb, tile_a, tile_b, ties=local_ties, fallback_shift=whole_shift, core=None if whole else local_core
+    )
     lo, hi = pair.disparity_range
     result = match(pair.left, pair.right, MatchParams(min_disparity=lo, max_disparity=hi + 1))
+    gy, gx = np.indices(result.disparity.shape)
+    grid = _apply(_invert(pair.A1), np.column_stack([gx.ravel(), gy.ravel()]).astype(float))
+    core_samples = _in_core(grid + [c0, r0], core, a.width, a.height)
+    matched = np.isfinite(result.disparity)
+    if result.filled is not None:
+        matched &= ~result.filled
+    counts = int(np.count_nonzero(matched.ravel() & core_samples)), int(np.count_nonzero(core_samples))
     y, x = np.nonzero(np.isfinite(result.disparity))
     d = result.disparity[y, x]
-    p1 = _apply(_invert(pair.A1), np.column_stack([x, y]).astype(float))
-    p2 = _apply(_invert(pair.A2), np.column_stack([x - d, y]).astype(float)) - pair.shift
-    inside = (p1[:, 0] >= 0) & (p1[:, 0] <= a.width - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= a.height - 1)
+    p1 = _apply(_invert(pair.A1), np.column_stack([x, y]).astype(float)) + [c0, r0]
+    p2 = _apply(_invert(pair.A2), np.column_stack([x - d, y]).astype(float))
+    p2 = p2 - pair.shift + bbox[:2]
+    inside = _in_core(p1, core, a.width, a.height)
     p1, p2, conf = p1[inside], p2[inside], result.confidence[y[inside], x[inside]]
     h = _intersect(a, b, p1, p2, *pair.heights)
     lon, lat = a.localize(p1[:, 1], p1[:, 0], h)
     ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
-    crs = utm_crs(float(np.nanmedian(lon)), float(np.nanmedian(lat)))
-    east, north = pyproj.Transformer.from_crs(4326, crs, always_xy=True).transform(lon[ok], lat[ok])
-    cloud = PointCloud(np.column_stack([east, north, h[ok]]), {"quality": conf[ok].astype(np.float32)}, crs)
-    report = {
-        "relative_bias_px": np.round(pair.shift, 3).tolist(),
-        "vertical_parallax_px": pair.parallax,
-        "disparity_range": list(pair.disparity_range),
-        "height_interval_m": list(pair.heights),
-        "matched_percent": result.params.get("matched_percent"),
-        "points": len(cloud),
-        "heights": "ellipsoidal (WGS 84), as the RPCs give them",
-    }
-    return cloud, report
+    if not ok.any():
+        raise InputError(f"{sa.name}: nothing matched")
+    return (lon[ok], lat[ok], h[ok], conf[ok]), pair, counts
 
 
 def _invert(A: np.ndarray) -> np.ndarray:
