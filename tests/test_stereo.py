@@ -178,6 +178,13 @@ def test_hidden_courtyard_is_ground(stereo_run, scene):
     assert inside.sum() > 20
     assert np.mean(height < 1.0) >= 0.5, np.percentile(height, [10, 50, 90])
     assert stereo_run.auto["dsm.hidden_ground"]["value"] > 0
+    xyz = stereo_run.cloud.xyz
+    over = shapely.contains_xy(shapely.union_all(yards), xyz[:, 0], xyz[:, 1])
+    phantom = over & (xyz[:, 2] > stereo_run.dtm.sample(xyz[:, 0], xyz[:, 1]) + 5.0)
+    lowered = over & (stereo_run.dsm.sample(xyz[:, 0], xyz[:, 1], bilinear=False) < stereo_run.dtm.sample(xyz[:, 0], xyz[:, 1]) + 1.0)
+    # the roof-height guesses left over lowered cells are noise (7) in cloud.laz
+    assert (phantom & lowered).sum() > 10
+    assert np.all(stereo_run.point_classes[phantom & lowered] == 7)
 
 
 def test_seen_by_all_finds_what_the_views_must_have_seen():

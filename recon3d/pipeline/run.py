@@ -461,6 +461,11 @@ def evaluate_products(s: RunState) -> None:
     s.point_classes = detect.point_classes(
         s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid
     )
+    if s.auto.get("dsm.hidden_ground", {}).get("value"):
+        # the guesses over hidden ground stay in the cloud, above the DSM that replaced them
+        xyz = s.cloud.xyz
+        above = xyz[:, 2] > s.dsm.sample(xyz[:, 0], xyz[:, 1], bilinear=False) + u.height(0.5)
+        s.point_classes[above] = ASPRS.NOISE
     if s.reference_classes is not None:
         from recon3d.quality import buildings as building_quality
 
@@ -611,7 +616,8 @@ def _read_constraints(s: RunState) -> tuple[list[np.ndarray], np.ndarray] | None
 
 
 def _classified_cloud(s: RunState) -> PointCloud:
-    """The input cloud with recon3d's classes: ground 2, vegetation 5, building 6, other 1."""
+    """The input cloud with recon3d's classes: ground 2, vegetation 5, building 6, other 1,
+    noise 7 (stereo points guessed over hidden ground)."""
     return s.cloud.with_attribute("classification", s.point_classes)
 
 
