@@ -776,7 +776,8 @@ def _partition_solid(regions, planes, g: float, u) -> Solid:
     labels = [labels[f] for f in keep]
     if not rings:
         raise _LodFailure("invalid_mesh", "no region left in the footprint")
-    rings = [[_insert_on_edges(r, coords, 0.75 * grid) for r in rr] for rr in rings]
+    # a vertex inserted on both edges of a narrow turn makes a spike (a, b, a): clean again
+    rings = [[_clean_ring(_insert_on_edges(r, coords, 0.75 * grid)) for r in rr] for rr in rings]
     plane_of = [np.asarray(planes[k], dtype=np.float64) for k in labels]
     # split shared edges where the two planes cross (a wall changing sides)
     for _ in range(3):
@@ -786,7 +787,7 @@ def _partition_solid(regions, planes, g: float, u) -> Solid:
         extra = np.round(extra / grid) * grid
         coords = np.concatenate([coords, extra])
         first = len(coords) - len(extra)
-        rings = [[_insert_on_edges(r, coords, grid, new_from=first) for r in rr] for rr in rings]
+        rings = [[_clean_ring(_insert_on_edges(r, coords, grid, new_from=first)) for r in rr] for rr in rings]
     # heights per (face, vertex), clustered per vertex
     entries = []
     for f, rr in enumerate(rings):
