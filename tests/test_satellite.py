@@ -112,6 +112,20 @@ def test_crops_that_do_not_overlap(tmp_path):
     _fails([shared(IMG1), far], "img1 and img2", "do not overlap", tmp_path=tmp_path)
 
 
+def test_crops_outside_the_rpc_validity_domain(tmp_path):
+    """Crop offsets far beyond the scene the RPCs were fitted on: refused, not extrapolated."""
+    paths = []
+    for name in ("img1", "img2"):
+        moved = tmp_path / f"{name}.tif"
+        shutil.copy(shared(f"stereo/pleiades_gizeh/{name}.tif"), moved)
+        shutil.copy(shared(f"stereo/pleiades_gizeh/{name}.geom"), tmp_path / f"{name}.geom")
+        with rasterio.open(moved, "r+") as dst:
+            t = dst.transform
+            dst.transform = rasterio.Affine(t.a, t.b, t.c + 200_000, t.d, t.e, t.f - 200_000)
+        paths.append(moved)
+    _fails(paths, "img1", "outside its RPC validity domain", tmp_path=tmp_path)
+
+
 def test_absolute_bias_from_control_points(giza, tmp_path):
     """Control points displaced by a known shift: the shift is recovered and applied."""
     from recon3d.core.raster import grid_for_bounds
