@@ -282,6 +282,26 @@ ROOFS = {
 }
 
 
+def test_conical_spire_is_stepped_by_height():
+    """A noisy cone 18 m high over a square (no plane fits much of it): LoD2.2 is refused for low
+    coverage and LoD1.3 steps up towards the tip by height levels, instead of the one
+    or two flat slabs the few plane fragments would give."""
+    def cone(x, y):
+        return 18.0 - 1.7 * np.hypot(x - 5, y - 5)
+
+    pts, fpw, frame = _synthetic(cone, shapely.box(0, 0, 10, 10), density=20.0, noise=0.4)
+    result = lod.build_lods(fpw, pts, 0.0, 18.0, frame, ALL_LODS)
+    assert "2.2" not in result.solids and result.reason == "low_coverage"
+    solid = result.solids["1.3"]
+    assert check_solid(solid) == []
+    tops = {round(float(v), 1) for v in np.asarray(solid.vertices)[:, 2]} - {0.0}
+    assert len(tops) >= 5, sorted(tops)  # a staircase, not a slab
+    assert max(tops) > 14.0  # it reaches up the cone
+    gx, gy = np.meshgrid(np.arange(0.05, 10, 0.1), np.arange(0.05, 10, 0.1))
+    truth = float(cone(gx, gy).sum() * 0.01)
+    assert abs(roofq.solid_volume(solid) / truth - 1) < 0.1
+
+
 @pytest.mark.parametrize("kind", sorted(ROOFS))
 def test_synthetic_roof_types_and_volumes(kind):
     fun, fp = ROOFS[kind]

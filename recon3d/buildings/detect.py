@@ -67,6 +67,7 @@ __all__ = [
     "point_classes",
     "point_features",
     "refine_labels",
+    "split_by_height",
     "vegetation_cells",
     "vegetation_index",
 ]
@@ -396,8 +397,22 @@ def _roughness(height: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(rss, 0.0, None) / 9.0)
 
 
-def _split_by_height(height: np.ndarray, mask: np.ndarray, split: float) -> tuple[np.ndarray, int]:
-    """Components of ``mask`` whose 4-neighbours connect only when heights differ by <= split."""
+def split_by_height(height: np.ndarray, mask: np.ndarray, split: float) -> tuple[np.ndarray, int]:
+    """Components of ``mask`` whose 4-neighbours connect only when heights differ by <= split.
+
+    Parameters
+    ----------
+    height : (rows, cols) float
+    mask : (rows, cols) bool
+    split : float
+        Largest height step inside one component; 0 or less: plain connected components.
+
+    Returns
+    -------
+    labels : (rows, cols) int32
+        1..n per component, 0 outside ``mask``.
+    n : int
+    """
     rows, cols = mask.shape
     ids = np.flatnonzero(mask.ravel())
     if split <= 0:
@@ -519,7 +534,7 @@ def find_blobs(ndsm: Raster, vegetation: np.ndarray, config: BuildingsConfig, un
     mask = _building_mask(ndsm, vegetation, config, units, smooth_cells)
     res = ndsm.resolution
     min_cells = max(1, int(math.ceil(units.area(config.min_area) / res**2)))
-    labels, n = _split_by_height(ndsm.data, mask, units.height(config.split_height))
+    labels, n = split_by_height(ndsm.data, mask, units.height(config.split_height))
     if n:
         labels = _merge_small(labels, n, min_cells)
         uniq, labels = np.unique(labels, return_inverse=True)

@@ -294,7 +294,12 @@ def build_lods(
             log.warning("LoD2.2 failed", exc_info=True)
     if ("1.3" in lods or "2.2" in reasons) and "1.3" not in reasons and grid is not None:
         try:
-            solids["1.3"] = _lod13(grid, fp, roof_pts, seg, g, u, cfg)
+            if seg.coverage < 0.5:  # planes explain little of this roof (a spire): terraces by height
+                levels = _height_levels(roof_pts, grid.cell, u.height(getattr(cfg, "lod13_step", 1.0)))
+                level_grid = _label_grid(fp, roof_pts, levels, grid.cell, u.area(1.0))
+                solids["1.3"] = _lod13(level_grid, fp, roof_pts, None, g, u, cfg, labels=levels)
+            else:
+                solids["1.3"] = _lod13(grid, fp, roof_pts, seg, g, u, cfg)
         except _LodFailure as exc:
             reasons["1.3"] = exc.reason
             log.debug("LoD1.3 not built: %s", exc)
@@ -1210,6 +1215,25 @@ def _lod13(grid: _Grid, fp, points, seg, g, u, cfg, *, labels=None) -> Solid:
     merged = _unpinch(merged, grid.inside)
     merged_grid = _Grid(merged, grid.inside, grid.transform, grid.cell, grid.xy, point_labels)
     return _roofed(merged_grid, fp, planes, g, u, intersect=False)[0]
+
+
+def _height_levels(points: np.ndarray, cell: float, step: float) -> np.ndarray:
+    """(n,) label of each roof point: the terraces of a roof cut at every ``step`` of
+    height (connected ``cell`` cells whose highest points fall in one band)."""
+    import affine
+
+    from recon3d.buildings.detect import split_by_height
+    from recon3d.terrain.dsm import grid_points
+
+    x0, y1 = points[:, 0].min() - cell, points[:, 1].max() + cell
+    shape = (int((y1 - points[:, 1].min()) / cell) + 2, int((points[:, 0].max() - x0) / cell) + 2)
+    transform = affine.Affine(cell, 0.0, x0, 0.0, -cell, y1)
+    top = grid_points(points, transform, shape, reducer="max")
+    band = np.floor(top / step)
+    labels, _ = split_by_height(band, np.isfinite(top), 0.5)  # neighbours join within one band
+    col = ((points[:, 0] - x0) / cell).astype(np.int64)
+    row = ((y1 - points[:, 1]) / cell).astype(np.int64)
+    return labels[row, col].astype(np.int64) - 1
 
 
 class _MinRootSets:
