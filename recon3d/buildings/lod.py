@@ -124,7 +124,9 @@ def lod1_solid(footprint: shapely.Polygon, z0: float, z1: float, frame: LocalFra
 #    from outside.
 #
 # LoD1.3 uses the same regions with one flat height per region (the 70th percentile
-# of its points; neighbours closer than ``lod13_step`` merged). Every solid is
+# of its points; neighbours closer than ``lod13_step`` merged); when planes hold less
+# than half the roof points (a spire), the regions are height terraces of
+# ``lod13_step`` instead. Every solid is
 # validated with ``quality.meshcheck.check_solid`` before it is returned; a LoD that
 # fails falls back to the next one with a reason:
 #
@@ -1177,7 +1179,8 @@ def _extend(line: shapely.LineString, by: float) -> shapely.LineString:
 
 
 def _lod13(grid: _Grid, fp, points, seg, g, u, cfg, *, labels=None) -> Solid:
-    """LoD1.3 from the plane grid: one flat height per region, similar neighbours merged."""
+    """LoD1.3 from a label grid (roof planes, or height terraces): one flat height per
+    region, similar neighbours merged."""
     lab = seg.labels if seg is not None else np.asarray(labels)
     nl = int(max(grid.labels.max(), lab.max())) + 1
     heights = np.full(nl, np.nan)
