@@ -206,6 +206,8 @@ def test_delft_split_blocks(delft_run):
     objs = doc["CityObjects"]
     part_ids = [oid for oid, o in objs.items() if o["type"] == "BuildingPart"]
     assert len(part_ids) == sum(len(p) for p in blocks.values())
+    assert delft_run.report["buildings"]["blocks"] == len(blocks)
+    assert "blocks of BuildingParts" in (delft_run.out_dir / "report.html").read_text(encoding="utf-8")
     for oid in part_ids:
         (parent,) = objs[oid]["parents"]
         assert objs[parent]["type"] == "Building" and oid in objs[parent]["children"]

@@ -510,6 +510,7 @@ def evaluate_products(s: RunState) -> None:
         "reasons": {r: sum(b.reason == r for b in s.city) for r in sorted({b.reason for b in s.city if b.reason})},
         "statuses": {k: statuses.count(k) for k in sorted(set(statuses))},
         "lods": {lod: sum(lod in b.solids for b in s.city) for lod in sorted({k for b in s.city for k in b.solids})},
+        "blocks": len(s.city.blocks()),  # split at height jumps: Building + BuildingParts
     }
 
 

@@ -146,6 +146,8 @@ def _buildings_section(out_dir: Path, report: dict) -> str:
     rows += "".join(f"<tr><td class=l>reason: {html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("reasons", {}).items())
     lods = b.get("lods", {})
     rows += "".join(f"<tr><td class=l>LoD {html.escape(k)}</td><td>{v}</td></tr>" for k, v in lods.items())
+    if b.get("blocks"):
+        rows += f"<tr><td class=l>blocks of BuildingParts</td><td>{b['blocks']}</td></tr>"
     table = f"<table><tr><th class=l>buildings</th><th>{b.get('count', 0)}</th></tr>{rows}</table>"
     return f"<h2>Buildings</h2>{table}{_map_svg(out_dir / 'footprints.geojson')}"
 
