@@ -277,37 +277,13 @@ def build_lods(
             reasons["1.3"] = reasons["2.2"] = why
     rms22 = float("nan")
     if want22 and "2.2" not in reasons:
-        try:
-            if seg.too_many_planes:
-                raise _LodFailure("too_many_planes", f"{len(seg.planes)} planes")
-            if seg.coverage < 0.5:
-                raise _LodFailure("low_coverage", f"{seg.coverage:.0%} of the roof points on a plane")
-            planes = [p.plane for p in seg.planes]
-            solid, parts = _roofed(grid, fp, planes, g, u, intersect=True)
-            rms22 = _partition_rms(parts, planes, roof_pts, u.height(1.0))
-            if not rms22 <= u.height(getattr(cfg, "max_roof_rms", 0.5)):
-                raise _LodFailure("poor_fit", f"roof RMS {rms22:.2f}")
-            solids["2.2"] = solid
-        except _LodFailure as exc:
-            reasons["2.2"] = exc.reason
-            log.debug("LoD2.2 not built: %s", exc)
-        except Exception:
-            reasons["2.2"] = "internal_error"
-            log.warning("LoD2.2 failed", exc_info=True)
+        built = _attempt("2.2", lambda: _lod22(grid, fp, seg, roof_pts, g, u, cfg), reasons)
+        if built is not None:
+            solids["2.2"], rms22 = built
     if ("1.3" in lods or "2.2" in reasons) and "1.3" not in reasons and grid is not None:
-        try:
-            if seg.coverage < 0.5:  # planes explain little of this roof (a spire): terraces by height
-                levels = _height_levels(roof_pts, grid.cell, u.height(getattr(cfg, "lod13_step", 1.0)))
-                level_grid = _label_grid(fp, roof_pts, levels, grid.cell, u.area(1.0))
-                solids["1.3"] = _lod13(level_grid, fp, roof_pts, None, g, u, cfg, labels=levels)
-            else:
-                solids["1.3"] = _lod13(grid, fp, roof_pts, seg, g, u, cfg)
-        except _LodFailure as exc:
-            reasons["1.3"] = exc.reason
-            log.debug("LoD1.3 not built: %s", exc)
-        except Exception:
-            reasons["1.3"] = "internal_error"
-            log.warning("LoD1.3 failed", exc_info=True)
+        built = _attempt("1.3", lambda: _lod13_of(grid, fp, seg, roof_pts, g, u, cfg), reasons)
+        if built is not None:
+            solids["1.3"] = built
     solids["1"] = lod1
     if "1" not in lods and len(solids) > 1:
         del solids["1"]
@@ -324,6 +300,44 @@ def build_lods(
     planes = seg.planes if seg is not None else []
     ordered = dict(sorted(solids.items(), key=lambda kv: float(kv[0])))
     return LodResult(ordered, kind, status, None if status == "ok" else reasons.get(top), rms, planes)
+
+
+def _attempt(lod: str, build, reasons: dict[str, str]):
+    """``build()``, or None with the reason recorded in ``reasons[lod]``; a bug is
+    logged and costs only this LoD, never the building its LoD1."""
+    try:
+        return build()
+    except _LodFailure as exc:
+        reasons[lod] = exc.reason
+        log.debug("LoD%s not built: %s", lod, exc)
+    except Exception:
+        reasons[lod] = "internal_error"
+        log.warning("LoD%s failed", lod, exc_info=True)
+    return None
+
+
+def _lod22(grid, fp, seg, roof_pts, g, u, cfg) -> tuple[Solid, float]:
+    """The LoD2.2 solid over the segmented planes and its roof RMS, or _LodFailure."""
+    if seg.too_many_planes:
+        raise _LodFailure("too_many_planes", f"{len(seg.planes)} planes")
+    if seg.coverage < 0.5:
+        raise _LodFailure("low_coverage", f"{seg.coverage:.0%} of the roof points on a plane")
+    planes = [p.plane for p in seg.planes]
+    solid, parts = _roofed(grid, fp, planes, g, u, intersect=True)
+    rms = _partition_rms(parts, planes, roof_pts, u.height(1.0))
+    if not rms <= u.height(getattr(cfg, "max_roof_rms", 0.5)):
+        raise _LodFailure("poor_fit", f"roof RMS {rms:.2f}")
+    return solid, rms
+
+
+def _lod13_of(grid, fp, seg, roof_pts, g, u, cfg) -> Solid:
+    """LoD1.3 over the plane regions, or over height terraces when planes hold less
+    than half the roof points (a spire)."""
+    if seg.coverage >= 0.5:
+        return _lod13(grid, fp, roof_pts, seg, g, u, cfg)
+    levels = _height_levels(roof_pts, grid.cell, u.height(getattr(cfg, "lod13_step", 1.0)))
+    level_grid = _label_grid(fp, roof_pts, levels, grid.cell, u.area(1.0))
+    return _lod13(level_grid, fp, roof_pts, None, g, u, cfg, labels=levels)
 
 
 def _segment(roof_pts, fp, params, u):
