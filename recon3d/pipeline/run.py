@@ -77,6 +77,7 @@ class RunState:
     reference_classes: np.ndarray | None = None
     dsm: Raster | None = None
     dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
+    dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
     dtm: Raster | None = None
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
@@ -304,6 +305,10 @@ def make_dsm(s: RunState) -> None:
     }
     max_cells = int(u.area(hole_area) / res**2)
     s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean")
+    c = s.cloud.classification
+    gridded = s.cloud.xyz if c is None else s.cloud.xyz[c != ASPRS.NOISE]  # as make_dsm
+    count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
+    s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
     observed = s.cloud.attributes.get("observed")
     if observed is not None and not observed.all():
         count = dsm_stage.grid_points(s.cloud.xyz[observed > 0], s.dsm.transform, s.dsm.shape, reducer="count")
@@ -492,8 +497,9 @@ def evaluate_products(s: RunState) -> None:
         products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
         tables += evaluate.against_checkpoints(products, s.checkpoints, u)
     roofs = s.dsm.data - s.model_dsm.data
-    # cells whose top is a tree crown over a roof measure the tree, not the model
-    on_buildings = (s.labels > 0) & np.isfinite(roofs) & ~(np.nan_to_num(s.vegetation_share) > 0.5)
+    # cells whose top is a tree crown over a roof measure the tree, not the model; cells
+    # filled from their rim (no point: LiDAR shadow beside walls) measure nothing
+    on_buildings = (s.labels > 0) & np.isfinite(roofs) & ~(np.nan_to_num(s.vegetation_share) > 0.5) & ~s.dsm_filled
     from recon3d.core.accuracy import AccuracyReport
 
     tables.append(
@@ -502,7 +508,7 @@ def evaluate_products(s: RunState) -> None:
         )
     )
     s.report["accuracy"] = [t.to_dict() for t in tables]
-    _roof_errors(s, -roofs)
+    _roof_errors(s, np.where(s.dsm_filled, np.nan, -roofs))
     statuses = [b.status for b in s.city]
     s.report["buildings"] = {
         "count": len(s.city),
