@@ -203,6 +203,8 @@ def test_cityjson_metadata():
     assert meta["pointOfContact"]["role"] == "processor"
     assert "producer" not in meta
     assert len(meta["referenceDate"]) == 10
+    city.metadata["referenceDate"] = "2014-03-04"  # the data's date, when the pipeline knows it
+    assert cityjson_dict(city)["metadata"]["referenceDate"] == "2014-03-04"
     lo = np.array(ORIGIN) + [0.0, 0.0, 1.0]
     hi = np.array(ORIGIN) + [52.0, 12.0, 12.0]
     np.testing.assert_allclose(meta["geographicalExtent"], [*lo, *hi], atol=1e-6)

@@ -11,8 +11,9 @@ and validates against the 2.0.2 JSON schema:
   oriented outward, with GroundSurface / WallSurface / RoofSurface semantics;
 - ``metadata`` holds only the six properties CityJSON 2.0 defines (since 1.1 no
   other property is allowed there): ``referenceSystem`` as an OGC CRS URL, the
-  ``geographicalExtent`` in world coordinates, ``referenceDate``, ``title`` and,
-  when given, ``identifier`` and ``pointOfContact``;
+  ``geographicalExtent`` in world coordinates, ``referenceDate`` (the city model's
+  ``metadata["referenceDate"]``, which the pipeline takes from the input data, else
+  today), ``title`` and, when given, ``identifier`` and ``pointOfContact``;
 - a building that could not be built is still written, with ``"geometry": []`` and
   its ``status`` / ``reason`` attributes, so a user sees every footprint;
 - the parts of a block that detection split at height jumps (buildings sharing a
@@ -31,6 +32,7 @@ import datetime as _dt
 import json
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -351,7 +353,7 @@ def _metadata(
     """The CityJSON ``metadata`` object (only the six properties the spec allows)."""
     meta: dict[str, Any] = {
         "title": "recon3d buildings",
-        "referenceDate": _dt.date.today().isoformat(),
+        "referenceDate": city.metadata.get("referenceDate") or _today(),
     }
     meta.update(_user_metadata(extra or {}))
     url = crs_url(city.crs)
@@ -362,6 +364,14 @@ def _metadata(
         lo, hi = world.min(axis=0), world.max(axis=0)
         meta["geographicalExtent"] = [float(round(v, 6)) for v in (*lo, *hi)]
     return meta
+
+
+def _today() -> str:
+    """Today's date, or that of ``SOURCE_DATE_EPOCH`` (reproducible builds) when set."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch and epoch.strip().isdigit():
+        return _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc).date().isoformat()
+    return _dt.date.today().isoformat()
 
 
 def _user_metadata(extra: dict) -> dict[str, Any]:
@@ -542,7 +552,10 @@ def read_cityjson(
             buildings.append(b)
     if not buildings:
         raise InputError(f"{path}: no Building with geometry in the file")
-    return CityModel(buildings, crs or file_crs, frame, {"source": str(path), "version": str(head.get("version"))})
+    meta = {"source": str(path), "version": str(head.get("version"))}
+    if "referenceDate" in head.get("metadata", {}):
+        meta["referenceDate"] = head["metadata"]["referenceDate"]
+    return CityModel(buildings, crs or file_crs, frame, meta)
 
 
 def _read_documents(path: Path) -> list[dict]:

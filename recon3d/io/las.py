@@ -16,7 +16,7 @@ from recon3d.io import atomic_path, require_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_las", "write_las"]
+__all__ = ["las_date", "read_las", "write_las"]
 
 #: Standard LAS dimensions carried through recon3d (extra-bytes dimensions are dropped).
 KEPT_DIMENSIONS = (
@@ -72,6 +72,20 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
     file_crs = _header_crs(las, path)
     return PointCloud(xyz, attributes, _resolve_crs(file_crs, crs, path))
+
+
+def las_date(path: str | Path) -> str | None:
+    """The header's file creation date (ISO ``YYYY-MM-DD``), None when unset or unreadable.
+
+    For a survey tile this is the day the data was compiled, the natural
+    ``referenceDate`` of a city model built from it (and the same on every run).
+    """
+    try:
+        with laspy.open(path) as reader:
+            day = reader.header.creation_date
+    except Exception:  # read_las has already reported a broken file
+        return None
+    return day.isoformat() if day is not None else None
 
 
 def write_las(cloud: PointCloud, path: str | Path) -> None:

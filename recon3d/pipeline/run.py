@@ -34,7 +34,7 @@ from recon3d.errors import InputError
 from recon3d.io import checkpoints as checkpoints_io
 from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
-from recon3d.io.las import read_las, write_las
+from recon3d.io.las import las_date, read_las, write_las
 from recon3d.quality import evaluate
 from recon3d.quality.rasterize import model_dsm
 from recon3d.terrain import dsm as dsm_stage
@@ -77,6 +77,7 @@ class RunState:
     reference_classes: np.ndarray | None = None
     dsm: Raster | None = None
     dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
+    reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
     dtm: Raster | None = None
     ndsm: Raster | None = None
@@ -215,6 +216,9 @@ def read_inputs(s: RunState) -> None:
         s.units = crs_units(s.scene.crs, source=str(s.input_path))
     elif suffix in (".las", ".laz"):
         s.cloud = read_las(s.input_path, crs=s.crs)
+        s.reference_date = las_date(s.input_path)
+        if s.reference_date:
+            s.auto["reference_date"] = {"value": s.reference_date, "reason": "LAS header creation date"}
     elif suffix == ".ply":
         from recon3d.io.ply import read_ply
 
@@ -406,7 +410,9 @@ def find_buildings(s: RunState) -> None:
         raised = detect.building_mask(s.ndsm, share, cfg, u)
         detect.assign_blocks(buildings, s.labels, raised, min_shared=u.length(cfg.min_edge))
     lo = s.cloud.bounds[0]
-    s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)))
+    # the date of the data, not of the run: the same input gives the same bytes
+    meta = {"referenceDate": s.reference_date} if s.reference_date else {}
+    s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)), meta)
 
 
 def _rounded(values: dict) -> dict:
