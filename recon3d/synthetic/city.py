@@ -39,6 +39,7 @@ __all__ = [
     "TreeTruth",
     "checkpoints",
     "make_city",
+    "truth_disparity",
     "truth_dsm",
     "truth_dtm",
 ]
@@ -701,6 +702,45 @@ def truth_dtm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) ->
     """
     x, y = _cell_centres(transform, shape)
     return city.ground_height(x, y).astype(np.float32)
+
+
+def truth_disparity(city: SyntheticCity, pair, offset) -> np.ndarray:
+    """Exact left-image disparity of a rectified pair of the city, by ray casting.
+
+    The ray through each rectified left pixel centre is cast from the left camera
+    into the city; its first hit is projected into the rectified right view. This
+    is what a perfect matcher would return, occlusions included (a point hidden
+    from the right image still has its geometric disparity).
+
+    Parameters
+    ----------
+    city : SyntheticCity
+    pair : recon3d.stereo.rectify.RectifiedPair
+        A rectified pair of the city's rendered scene (cameras in model coordinates).
+    offset : (3,) float
+        The scene's georeferencing offset: world = model + offset.
+
+    Returns
+    -------
+    (H, W) float32
+        Disparity in pixels (``x_right = x_left - d``); NaN where the ray hits nothing.
+    """
+    import open3d as o3d
+
+    h, w = pair.left.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
+    # rectified pixel -> rectified frame -> left camera frame -> model frame direction
+    rays = pair.camera_left.R.T @ (pair.R1.T @ (np.linalg.inv(pair.P1[:, :3]) @ pixels))
+    rays /= np.linalg.norm(rays, axis=0)
+    shift = np.asarray(offset, np.float64) - np.asarray(city.origin, np.float64)  # model -> city local
+    start = pair.camera_left.center + shift
+    query = np.hstack([np.tile(start, (u.size, 1)), rays.T]).astype(np.float32)
+    t = city.raycaster().cast_rays(o3d.core.Tensor(query))["t_hit"].numpy().astype(np.float64)
+    hit = pair.camera_left.center + rays.T * t[:, None]  # model coordinates, inf where missed
+    xl, xr = pair.project(np.where(np.isfinite(hit), hit, 0.0))
+    d = np.where(np.isfinite(t), xl[:, 0] - xr[:, 0], np.nan)
+    return d.reshape(h, w).astype(np.float32)
 
 
 def checkpoints(

@@ -1,0 +1,138 @@
+"""Where the stereo DSM's error comes from: the matcher, or the stages after it.
+
+Runs `recon3d run` on a rendered city twice: once with the dense matcher, once with
+the exact disparities ray-cast from the city (a perfect matcher, occlusions
+included). Both DSMs are compared with the truth the way the pipeline's accuracy
+table does it (truth resampled to the DSM grid, highest value per cell), and the
+squared error is split by kind of place: roof interiors (more than 1 m inside an
+outline), the band of +-1 m around outlines (inside and outside the footprint), tree
+crowns and open ground.
+
+    .venv/bin/python scripts/stereo_error_budget.py [--scene DIR | --seed 0]
+
+A DSM error the perfect matcher shares is not the matcher's: it comes from
+triangulation, fusion and outlier removal, gridding (highest point per cell against
+a truth sampled at cell centres) and hole filling (ground neither image sees).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import tempfile
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import rasterio.features
+import shapely
+
+from recon3d.io.geotiff import read_raster
+from recon3d.pipeline.run import run
+from recon3d.quality.evaluate import resample_max
+from recon3d.synthetic import write_scene
+from recon3d.synthetic.city import make_city, truth_disparity
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path, help="a scene folder written by recon3d.synthetic (default: render one)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the rendered city (without --scene)")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = args.scene
+        if scene is None:
+            scene = Path(tmp) / "scene"
+            write_scene(scene, seed=args.seed)
+        places = _places(scene)
+        rows = {}
+        for name, perfect in (("matcher", False), ("perfect disparities", True)):
+            out = Path(tmp) / name.replace(" ", "_")
+            with _perfect_matcher(scene) if perfect else _nothing():
+                state = run(scene, out, truth_dsm=scene / "truth" / "dsm.tif")
+            rows[name] = _budget(state.dsm, read_raster(scene / "truth" / "dsm.tif"), places(state.dsm))
+    _print(rows)
+
+
+def _perfect_matcher(scene: Path):
+    """Patch triangulation to use the ray-cast disparity wherever the matcher gave one."""
+    from recon3d.io.colmap import read_scene
+    from recon3d.stereo import triangulate as tri
+
+    record = json.loads((scene / "truth" / "scene.json").read_text())
+    city = make_city(seed=record["seed"], size=record["size"])
+    offset = read_scene(scene).offset
+    original = tri.triangulate
+
+    def exact(pair, disparity, confidence, **kw):
+        truth = truth_disparity(city, pair, offset)
+        truth[~np.isfinite(disparity)] = np.nan  # same footprint: nodata borders stay out
+        kw["guessed"] = None
+        return original(pair, truth, np.isfinite(truth).astype(np.float32), **kw)
+
+    return mock.patch("recon3d.pipeline.stereo.triangulate", exact)
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _places(scene: Path):
+    """A function giving, on a DSM grid, the (rows, cols) bool mask of each kind of place."""
+    doc = json.loads((scene / "truth" / "footprints.geojson").read_text())
+    outlines = [shapely.geometry.shape(f["geometry"]) for f in doc["features"]]
+    with open(scene / "truth" / "trees.csv", newline="") as f:
+        crowns = [shapely.Point(float(r["x"]), float(r["y"])).buffer(float(r["crown_radius"]) + 0.5) for r in csv.DictReader(f)]
+
+    def masks(grid) -> dict[str, np.ndarray]:
+        def burn(geoms):
+            geoms = [g for g in geoms if not g.is_empty]
+            if not geoms:
+                return np.zeros(grid.shape, bool)
+            return rasterio.features.rasterize([(g, 1) for g in geoms], out_shape=grid.shape, transform=grid.transform).astype(bool)
+
+        inner = burn([p.buffer(-1.0) for p in outlines])
+        inside = burn(outlines)
+        band = burn([p.buffer(1.0) for p in outlines]) & ~inner
+        trees = burn(crowns)
+        return {
+            "roof interior": inner & ~trees,
+            "outline band, inside": band & inside & ~trees,
+            "outline band, outside": band & ~inside & ~trees,
+            "tree crowns": trees,
+            "open ground": ~inner & ~band & ~trees,
+        }
+
+    return masks
+
+
+def _budget(dsm, truth, places: dict[str, np.ndarray]) -> dict:
+    error = dsm.data - resample_max(truth, dsm)
+    valid = np.isfinite(error)
+    total = float(np.sum(error[valid] ** 2))
+    out = {"all": (int(valid.sum()), float(np.sqrt(total / valid.sum())), 100.0)}
+    for name, mask in places.items():
+        e = error[mask & valid]
+        out[name] = (e.size, float(np.sqrt(np.mean(e**2))) if e.size else float("nan"), 100.0 * float(np.sum(e**2)) / total)
+    return out
+
+
+def _print(rows: dict) -> None:
+    names = list(rows)
+    print(f"{'DSM - truth':24s}" + "".join(f"{n:>34s}" for n in names))
+    print(f"{'':24s}" + "".join(f"{'cells':>10s}{'RMS (m)':>10s}{'% of MSE':>14s}" for _ in names))
+    for place in rows[names[0]]:
+        line = f"{place:24s}"
+        for n in names:
+            cells, rms, share = rows[n][place]
+            line += f"{cells:10d}{rms:10.2f}{share:14.1f}"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
