@@ -355,6 +355,21 @@ def test_step_wall_between_flat_roofs():
     assert np.all(np.abs(x - 5) < 0.3)
 
 
+def test_four_roofs_meeting_at_a_point():
+    """Four flat roofs around one corner, heights going up and down around it: the four
+    step walls would share one vertical edge (val3dity 304). The corner goes to one
+    roof, leaving junctions of three, and LoD2.2 is built."""
+    heights = np.array([[10.0, 11.0], [11.5, 10.5]])  # [y >= 10][x >= 10]
+    fun = lambda x, y: heights[(y >= 10).astype(int), (x >= 10).astype(int)]  # noqa: E731
+    pts, fpw, frame = _synthetic(fun, shapely.box(0, 0, 20, 20))
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    assert "2.2" in result.solids, result.reason
+    solid = result.solids["2.2"]
+    assert check_solid(solid) == []
+    tops = sorted({round(float(z), 1) for z in solid.vertices[:, 2]})
+    assert tops == [0.0, 10.0, 10.5, 11.0, 11.5]
+
+
 def test_determinism_and_order_independence():
     fun, fp = ROOFS["hip"]
     pts, fpw, frame = _synthetic(fun, fp)

@@ -728,6 +728,7 @@ def _roofed(grid: _Grid, fp, planes: list[np.ndarray], g: float, u, *, intersect
         regions = _arrangement(regions, planes, fp, grid, u)
     regions = _absorb_small(regions, (0.5 * grid.cell) ** 2, u.length(0.02))
     regions = _open_pinches(regions, u.length(0.05), u.length(0.004))
+    regions = _open_crossings(regions, u.length(0.05), u.length(0.004))
     if not regions:
         raise _LodFailure("invalid_mesh", "no region left in the footprint")
     solid = _partition_solid(regions, planes, g, u)
@@ -1008,6 +1009,41 @@ def _open_pinches(regions, radius: float, tol: float):
         parts = [g for g in shapely.get_parts(rest) if g.geom_type == "Polygon" and g.area > 0]
         out = [(new[j], regions[j][1]) for j in range(len(regions)) if j != i]
         regions = out[:i] + [(g, label) for g in parts] + out[i:]
+    return regions
+
+
+def _open_crossings(regions, radius: float, tol: float):
+    """Where four or more parts meet at one vertex (vertices closer than ``tol``), the
+    part covering most of the disc of ``radius`` around it takes the whole disc, so only
+    junctions of three are left. With heights going up and down around such a vertex
+    (two ridges crossing off level), the four step walls there would share one vertical
+    edge (val3dity 304); around a junction of three, every wall edge has two sides."""
+    from scipy.spatial import cKDTree
+
+    regions = list(regions)
+    for _ in range(len(regions)):
+        pts = [np.asarray(r.coords)[:-1, :2] for poly, _ in regions for r in (poly.exterior, *poly.interiors)]
+        owner = np.repeat(
+            np.arange(len(regions)), [sum(len(r.coords) - 1 for r in (p.exterior, *p.interiors)) for p, _ in regions]
+        )
+        pts = np.concatenate(pts)
+        crossing = next(
+            (pts[k] for k, near in enumerate(cKDTree(pts).query_ball_point(pts, tol)) if len(set(owner[near])) >= 4),
+            None,
+        )
+        if crossing is None:
+            return regions
+        whole = shapely.union_all([p for p, _ in regions])
+        disc = shapely.intersection(shapely.Point(crossing).buffer(radius, quad_segs=2), whole)
+        j = int(np.argmax([shapely.intersection(p, disc).area for p, _ in regions]))
+        out = []
+        for i, (poly, label) in enumerate(regions):
+            cut = shapely.union(poly, disc) if i == j else shapely.difference(poly, disc)
+            parts = [g for g in shapely.get_parts(cut) if g.geom_type == "Polygon" and g.area > 0]
+            if i == j and len(parts) != 1:
+                return regions  # cannot open it: the mesh check will decide
+            out += [(g, label) for g in parts]
+        regions = out
     return regions
 
 

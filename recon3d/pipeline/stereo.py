@@ -60,11 +60,19 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
     if not clouds:
         raise InputError(f"{scene.folder}: dense matching produced no point")
     gsd = _ground_sample_distance(scene)
-    cloud = fuse(clouds, cell=gsd)
+    cloud = fuse(clouds, cell=gsd, rough=_foliage)
     cloud = PointCloud(cloud.xyz + scene.offset, cloud.attributes, scene.crs)
     report["ground_sample_distance"] = round(gsd, 4)
     report["points"] = len(cloud)
     return cloud, report
+
+
+def _foliage(cloud: PointCloud) -> np.ndarray | None:
+    """(n,) bool: points coloured like foliage (the colour-only vegetation threshold)."""
+    from recon3d.buildings.detect import COLOUR_ONLY_THRESHOLDS, vegetation_index
+
+    index = vegetation_index(cloud)
+    return None if index is None else index[0] > COLOUR_ONLY_THRESHOLDS[index[1]]
 
 
 def _read(path) -> np.ndarray:

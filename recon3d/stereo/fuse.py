@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
@@ -13,13 +14,22 @@ log = logging.getLogger(__name__)
 __all__ = ["fuse"]
 
 
-def fuse(clouds: list[PointCloud], *, cell: float, neighbours: int = 16, std_ratio: float = 2.5) -> PointCloud:
+def fuse(
+    clouds: list[PointCloud],
+    *,
+    cell: float,
+    neighbours: int = 16,
+    std_ratio: float = 2.5,
+    rough: Callable[[PointCloud], np.ndarray | None] | None = None,
+) -> PointCloud:
     """Merge pair clouds, keep the best points where pairs overlap, remove outliers.
 
     Where several pairs put points in the same ``cell`` x ``cell`` column footprint
     (at half the cell), only the points of the pair with the highest mean quality
     there are kept, so a weak pair cannot blur a good one. Then Open3D's statistical
-    outlier removal drops isolated points (deterministic).
+    outlier removal drops isolated points (deterministic), except the points
+    ``rough`` marks: on a surface rough by nature (foliage) a sparse point is the
+    outer edge of a crown, not a mismatch.
 
     Parameters
     ----------
@@ -27,6 +37,10 @@ def fuse(clouds: list[PointCloud], *, cell: float, neighbours: int = 16, std_rat
         Same attributes in each.
     cell : float
         Ground sampling distance (model units).
+    neighbours, std_ratio : int, float
+        Open3D ``remove_statistical_outlier`` parameters.
+    rough : callable, optional
+        ``rough(merged)`` -> (n,) bool of the points exempt from outlier removal, or None.
     """
     if len(clouds) > 1:
         clouds = _best_pair_per_cell(clouds, cell / 2)
@@ -42,9 +56,14 @@ def fuse(clouds: list[PointCloud], *, cell: float, neighbours: int = 16, std_rat
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(merged.xyz))
     _, kept = pcd.remove_statistical_outlier(nb_neighbors=neighbours, std_ratio=std_ratio)
-    kept = np.sort(np.asarray(kept, dtype=np.int64))
-    log.info("fusion: %d of %d points kept after outlier removal", len(kept), len(merged))
-    return merged[kept]
+    keep = np.zeros(len(merged), bool)
+    keep[np.asarray(kept, dtype=np.int64)] = True
+    exempt = rough(merged) if rough is not None else None
+    if exempt is not None:
+        log.info("fusion: %d outliers kept on rough surfaces", int(np.count_nonzero(exempt & ~keep)))
+        keep |= exempt
+    log.info("fusion: %d of %d points kept after outlier removal", int(keep.sum()), len(merged))
+    return merged[np.flatnonzero(keep)]
 
 
 def _best_pair_per_cell(clouds: list[PointCloud], cell: float) -> list[PointCloud]:
