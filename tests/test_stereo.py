@@ -47,8 +47,11 @@ def test_products_against_truth(stereo_run):
     assert ground["n"] >= 10 and ground["rms"] <= 0.3
     assert roof["n"] >= 5 and roof["rms"] <= 0.5
     dsm = _table(stereo_run, "DSM", "reference DSM")
-    # measured on this scene: |mean| ~0.1 m, NMAD ~0.1 m; building edges (a few % of cells) dominate the RMS
+    # measured on this scene: mean 0.03 m, NMAD 0.16 m, RMS 1.68 m (1.62 m for the demo
+    # city with exact disparities: cells beside walls and crown rims dominate the RMS,
+    # see scripts/stereo_error_budget.py)
     assert abs(dsm["mean"]) <= 0.2 and dsm["nmad"] <= 0.2 and dsm["within_1m"] >= 90.0
+    assert dsm["rms"] <= 1.85
     assert stereo_run.report["dsm_filled_percent"] >= 95.0
     assert _table(stereo_run, "DTM", "check points (ground)")["rms"] <= 0.3
     assert stereo_run.auto["ground"]["method"]["value"] == "tophat"  # no return numbers
