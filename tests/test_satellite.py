@@ -33,16 +33,11 @@ def _pyramid(dsm):
     line through the apex and lines 10 and 20 m north and south of it (one line alone
     moves by several metres with the matching noise at the foot of the faces).
     """
+    from recon3d.quality.evaluate import landmark_height
+
     e, n = pyproj.Transformer.from_crs(4326, dsm.crs, always_xy=True).transform(*KHUFU)
-    x, y = dsm.cell_centers()
-    gx, gy = np.meshgrid(x, y)
-    z = dsm.data
-    near = np.hypot(gx - e, gy - n) < 60
-    iy, ix = np.unravel_index(np.nanargmax(np.where(near, z, -np.inf)), z.shape)
-    apex = z[iy, ix]
-    ring = np.maximum(np.abs(gx - gx[iy, ix]), np.abs(gy - gy[iy, ix]))
-    base = np.nanmedian(np.where((ring > 118) & (ring < 130), z, np.nan))  # just outside the 230 m base
-    top5 = np.sort(z[near & np.isfinite(z)])[-5:].mean()
+    khufu = landmark_height(dsm, e, n, search=60.0, ring=(118.0, 130.0))  # ring just outside the base
+    iy, ix, base, z = khufu["row"], khufu["col"], khufu["base"], dsm.data
     widths = []
     for row in iy + np.rint(np.array([-20, -10, 0, 10, 20]) / dsm.resolution).astype(int):
         above = np.nan_to_num(z[row], nan=-1e9) > base + 2  # the base along an east-west line
@@ -52,7 +47,24 @@ def _pyramid(dsm):
         while hi < len(above) - 1 and above[hi + 1]:
             hi += 1
         widths.append((hi - lo) * dsm.resolution)
-    return float(apex - base), float(top5 - base), float(np.median(widths))
+    return khufu["apex"], khufu["top5"], float(np.median(widths))
+
+
+def test_landmark_height_of_a_cone():
+    """A 40 m cone of 30 m radius on ground at 100 m: apex and top-5 above the ring around it."""
+    from affine import Affine
+
+    from recon3d.core.raster import Raster
+    from recon3d.quality.evaluate import landmark_height
+
+    transform = Affine(1.0, 0.0, 1000.0, 0.0, -1.0, 2100.0)
+    x, y = np.meshgrid(np.arange(100) + 1000.5, 2100 - np.arange(100) - 0.5)
+    z = 100.0 + np.maximum(0.0, 40.0 * (1 - np.hypot(x - 1050.5, y - 2050.5) / 30.0))
+    z[10, 10] = np.nan  # nodata is ignored
+    out = landmark_height(Raster(z.astype(np.float32), transform), 1048.0, 2052.0, search=10.0, ring=(32.0, 40.0))
+    assert out["apex"] == pytest.approx(40.0, abs=1e-3)
+    assert 37.0 < out["top5"] < 40.0
+    assert out["base"] == pytest.approx(100.0) and (out["row"], out["col"]) == (49, 50)
 
 
 def test_dsm_in_utm_with_the_pyramid(giza):

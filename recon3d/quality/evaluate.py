@@ -17,6 +17,7 @@ __all__ = [
     "building_coverage",
     "evaluate_ground",
     "ground_filter_errors",
+    "landmark_height",
 ]
 
 
@@ -210,3 +211,38 @@ def resample_max(source: Raster, grid: Raster) -> np.ndarray:
         resampling=Resampling.max if source.resolution < grid.resolution else Resampling.nearest,
     )
     return out
+
+
+def landmark_height(dsm: Raster, x: float, y: float, *, search: float, ring: tuple[float, float]) -> dict:
+    """Height of a landmark above its surroundings, to check a DSM against a known object.
+
+    The apex is the highest cell within ``search`` of ``(x, y)``; the base is the median
+    height of the square ring ``ring[0] < d < ring[1]`` around the apex (``d`` the
+    larger of the x and y offsets), just outside the object.
+
+    Parameters
+    ----------
+    dsm : Raster
+    x, y : float
+        Where the landmark is, in the DSM's CRS.
+    search : float
+        Radius of the search for the apex (CRS units).
+    ring : (float, float)
+        Inner and outer half-widths of the base ring (CRS units).
+
+    Returns
+    -------
+    dict
+        ``apex`` (highest cell above the base), ``top5`` (mean of the five highest cells
+        within ``search``, above the base; less sensitive to one spike), ``base``
+        (height), ``row`` and ``col`` of the apex cell.
+    """
+    cx, cy = dsm.cell_centers()
+    gx, gy = np.meshgrid(cx, cy)
+    z = dsm.data
+    near = np.hypot(gx - x, gy - y) < search
+    row, col = np.unravel_index(np.nanargmax(np.where(near, z, -np.inf)), z.shape)
+    d = np.maximum(np.abs(gx - gx[row, col]), np.abs(gy - gy[row, col]))
+    base = float(np.nanmedian(np.where((d > ring[0]) & (d < ring[1]), z, np.nan)))
+    top5 = float(np.sort(z[near & np.isfinite(z)])[-5:].mean())
+    return {"apex": float(z[row, col]) - base, "top5": top5 - base, "base": base, "row": int(row), "col": int(col)}
