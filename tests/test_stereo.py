@@ -280,3 +280,53 @@ def test_demo_command(tmp_path):
     assert (out / "products" / "buildings.city.json").exists()
     again = CliRunner().invoke(cli, ["demo", "-o", str(out)])
     assert again.exit_code == 1 and "--overwrite" in again.output
+
+
+def test_grid_stereo_outvotes_spill_and_guesses():
+    """Per cell: the highest observed point of each pair, the median over the pairs; a
+    guess only where no pair observed the cell."""
+    from affine import Affine
+
+    from recon3d.terrain.dsm import grid_stereo
+
+    transform = Affine(1.0, 0.0, 0.0, 0.0, -1.0, 2.0)  # 2 x 2 cells
+    pts = np.array([
+        # cell (0, 0): three pairs, one spilling roof height onto the ground
+        [0.5, 1.5, 10.0], [0.2, 1.8, 10.4], [0.6, 1.4, 11.0], [0.4, 1.6, 30.0],
+        # cell (0, 1): an observation and a higher guess
+        [1.5, 1.5, 5.0], [1.5, 1.6, 9.0],
+        # cell (1, 0): a guess only
+        [0.5, 0.5, 7.0],
+        # cell (1, 1): two pairs, median of two is their mean
+        [1.5, 0.5, 10.0], [1.4, 0.4, 12.0],
+    ])
+    observed = np.array([1, 1, 1, 1, 1, 0, 0, 1, 1], bool)
+    source = np.array([1, 1, 2, 3, 1, 1, 1, 1, 2])
+    grid = grid_stereo(pts, transform, (2, 2), observed=observed, source=source)
+    np.testing.assert_allclose(grid, [[11.0, 5.0], [7.0, 11.0]])
+    single = grid_stereo(pts, transform, (2, 2), observed=observed)  # one source: its highest observation
+    np.testing.assert_allclose(single, [[30.0, 5.0], [7.0, 12.0]])
+
+
+def test_three_images_make_a_better_dsm_than_two(stereo_run, tmp_path):
+    """A strip of three images (three pairs) over the test city: each pair's points keep
+    their pair in cloud.laz (point_source_id), the DSM takes the median of the pairs,
+    and it beats the two-image DSM of the same city (measured 1.52 against 1.67 m RMS;
+    before the median, the best-pair-per-cell fusion made three images worse than two)."""
+    import laspy
+
+    from recon3d.pipeline.run import run
+    from recon3d.synthetic import write_scene
+
+    folder = tmp_path / "strip"
+    write_scene(folder, seed=3, size=100.0, gsd=0.3, image_size=(600, 450), n_images=3)
+    state = run(folder, tmp_path / "out", truth_dsm=folder / "truth" / "dsm.tif")
+    pairs = state.auto["stereo"]["pairs"]
+    assert len(pairs) == 3 and sorted(p["point_source_id"] for p in pairs) == [1, 2, 3]
+    las = laspy.read(tmp_path / "out" / "cloud.laz")
+    assert set(np.unique(las.point_source_id)) == {1, 2, 3}
+    assert state.dsm.resolution == stereo_run.dsm.resolution  # more points, not more detail
+    three = _table(state, "DSM", "reference DSM")
+    two = _table(stereo_run, "DSM", "reference DSM")
+    assert three["rms"] < two["rms"] - 0.05, (three, two)
+    assert three["within_1m"] >= 95.0 and abs(three["mean"]) <= 0.2

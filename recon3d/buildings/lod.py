@@ -798,8 +798,10 @@ def _partition_solid(regions, planes, g: float, u) -> Solid:
     labels = [labels[f] for f in keep]
     if not rings:
         raise _LodFailure("invalid_mesh", "no region left in the footprint")
-    # a vertex inserted on both edges of a narrow turn makes a spike (a, b, a): clean again
-    rings = [[_clean_ring(_insert_on_edges(r, coords, 0.75 * grid)) for r in rr] for rr in rings]
+    # a vertex within the merge distance of an edge lies on it (else a sliver gap too thin
+    # for a valid ring opens between two parts); inserted on both edges of a narrow turn
+    # it makes a spike (a, b, a): clean again
+    rings = [[_clean_ring(_insert_on_edges(r, coords, 1.5 * grid)) for r in rr] for rr in rings]
     plane_of = [np.asarray(planes[k], dtype=np.float64) for k in labels]
     # split shared edges where the two planes cross (a wall changing sides)
     for _ in range(3):

@@ -293,8 +293,12 @@ def _read_side_inputs(s: RunState) -> None:
 def make_dsm(s: RunState) -> None:
     cfg, u = s.config.dsm, s.units
     spacing = dsm_stage.point_spacing(s.cloud.xyz[:, :2])
+    gsd = s.auto.get("stereo", {}).get("ground_sample_distance")
     if cfg.resolution:
         res, why = u.length(cfg.resolution), "config"
+    elif gsd and spacing < gsd:  # pairs over the same ground add points, not detail
+        res, why = dsm_stage.choose_resolution(gsd, u)
+        why = why.replace("mean point spacing", "stereo: ground sample distance (the points are denser)")
     else:
         res, why = dsm_stage.choose_resolution(spacing, u)
     s.auto["dsm.resolution"] = {"value": res, "unit": u.name, "reason": why}
@@ -308,7 +312,12 @@ def make_dsm(s: RunState) -> None:
          else "LiDAR: gaps between scan lines, filled from the mean of their rim"),
     }
     max_cells = int(u.area(hole_area) / res**2)
-    s.dsm = dsm_stage.make_dsm(s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean")
+    a = s.cloud.attributes
+    observed = a["observed"] > 0 if stereo and "observed" in a else None
+    s.dsm = dsm_stage.make_dsm(
+        s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean",
+        observed=observed, source=a.get("point_source_id") if observed is not None else None,
+    )
     c = s.cloud.classification
     gridded = s.cloud.xyz if c is None else s.cloud.xyz[c != ASPRS.NOISE]  # as make_dsm
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")

@@ -151,13 +151,15 @@ def stereo_cameras(
     base_to_height: float = 0.4,
     max_rotation_deg: float = 2.0,
     seed: int = 0,
-) -> tuple[PinholeCamera, PinholeCamera]:
-    """A convergent aerial stereo pair looking at ``target``, not rectified.
+    n_images: int = 2,
+) -> tuple[PinholeCamera, ...]:
+    """A convergent aerial stereo pair (or strip) looking at ``target``, not rectified.
 
-    The cameras fly at ``focal * gsd`` above the target, ``base_to_height`` times
-    that apart along world x (left image first), aim at the target and are then
-    turned by a random roll, pitch and yaw of 0.5 to ``max_rotation_deg`` degrees
-    each (different per camera), so their epipolar lines are not image rows.
+    The cameras fly at ``focal * gsd`` above the target, the first and the last
+    ``base_to_height`` times that apart along world x (west first), the others evenly
+    between them; they aim at the target and are then turned by a random roll, pitch
+    and yaw of 0.5 to ``max_rotation_deg`` degrees each (different per camera), so
+    their epipolar lines are not image rows.
 
     Parameters
     ----------
@@ -172,26 +174,31 @@ def stereo_cameras(
     base_to_height : float
     max_rotation_deg : float
     seed : int
+    n_images : int
+        Number of cameras, at least 2.
 
     Returns
     -------
-    (PinholeCamera, PinholeCamera)
-        Named "left.png" and "right.png".
+    tuple of PinholeCamera
+        Named "left.png" and "right.png" for a pair, "view1.png", "view2.png"... for a strip.
     """
+    if n_images < 2:
+        raise ValueError(f"n_images {n_images}: a stereo scene needs at least 2 images")
     f = float(width if focal is None else focal)
     flying = f * gsd
     base = base_to_height * flying
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 10]))
     target = np.asarray(target, np.float64)
+    names = ["left.png", "right.png"] if n_images == 2 else [f"view{k + 1}.png" for k in range(n_images)]
     cams = []
-    for side, name in ((-1, "left.png"), (1, "right.png")):
+    for side, name in zip(np.linspace(-1.0, 1.0, n_images), names, strict=True):
         center = target + np.array([side * base / 2, 0.0, flying])
         angles = rng.uniform(0.5, max_rotation_deg, 3) * rng.choice([-1.0, 1.0], 3)
         R = _rotation(*np.radians(angles)) @ _look_at(center, target)
         cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), name))
-    log.debug("stereo pair: flying height %.1f m, base %.1f m, focal %.0f px", flying, base, f)
-    return cams[0], cams[1]
+    log.debug("%d images: flying height %.1f m, base %.1f m, focal %.0f px", n_images, flying, base, f)
+    return tuple(cams)
 
 
 def check_coverage(city: SyntheticCity, cameras, margin_px: float = 2.0) -> None:
@@ -429,13 +436,13 @@ def render(
 
 def render_pair(
     city: SyntheticCity,
-    cameras: tuple[PinholeCamera, PinholeCamera],
+    cameras: tuple[PinholeCamera, ...],
     *,
     lighting: Lighting = Lighting(),
     texture_scale: float = 0.4,
     seed: int = 0,
 ) -> list[Render]:
-    """Render both images of a stereo pair (see :func:`render`)."""
+    """Render every image of a stereo pair or strip (see :func:`render`)."""
     return [
         render(city, c, lighting=lighting, texture_scale=texture_scale, seed=seed)
         for c in cameras
@@ -457,31 +464,33 @@ def visible(
 
 def sparse_points(
     city: SyntheticCity,
-    cameras: tuple[PinholeCamera, PinholeCamera],
+    cameras: tuple[PinholeCamera, ...],
     n: int = 400,
     *,
     seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Surface points seen by both cameras, like a sparse SfM model.
+    """Surface points seen by every camera, like a sparse SfM model.
 
     Points are hit by rays through random (sub-pixel) positions of the first image
-    and kept when the second camera sees them too.
+    and kept when the other cameras see them too.
 
     Returns
     -------
     xyz : (m, 3) float64
         Local points, ``m <= n``.
-    uv : (2, m, 2) float64
+    uv : (len(cameras), m, 2) float64
         Their exact projections in each image (COLMAP pixel convention).
     """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 40]))
-    first, second = cameras
+    first, *others = cameras
     uv0 = rng.uniform([2, 2], [first.width - 2, first.height - 2], (4 * n, 2))
     dirs = first.rays(uv0)
     origin = np.broadcast_to(first.center, dirs.shape)
     t, face = _cast(city, origin, dirs)
     xyz = origin + np.where(face >= 0, t, 0.0)[:, None] * dirs
-    keep = (face >= 0) & visible(city, second, xyz)
+    keep = face >= 0
+    for camera in others:
+        keep &= visible(city, camera, xyz)
     xyz = xyz[keep][:n]
     uv = np.stack([cam.project(xyz)[0] for cam in cameras])
     return xyz, uv

@@ -103,8 +103,9 @@ def write_scene(
     n_sparse: int = 400,
     n_buildings: int | None = None,
     lighting: Lighting = Lighting(),
+    n_images: int = 2,
 ) -> SceneInfo:
-    """Build a city, render an aerial stereo pair and write the scene folder.
+    """Build a city, render an aerial stereo pair (or strip) and write the scene folder.
 
     Parameters
     ----------
@@ -112,17 +113,20 @@ def write_scene(
         Created if needed; files of an earlier scene there are replaced.
     seed : int
     size : float
-        Side of the city in metres; it must fit in both images.
+        Side of the city in metres; it must fit in every image.
     gsd : float
         Ground sample distance in metres (nadir, at the flying height); the truth
         rasters use it rounded to 1, 2, 2.5 or 5 times a power of ten.
     image_size : (width, height)
     base_to_height : float
     n_sparse : int
-        Number of 3-D points of the COLMAP model (surface points seen in both images).
+        Number of 3-D points of the COLMAP model (surface points seen in every image).
     n_buildings : int, optional
         See :func:`~recon3d.synthetic.city.make_city`.
     lighting : Lighting
+    n_images : int
+        Images along the flight line, the first and last ``base_to_height`` apart
+        (see :func:`~recon3d.synthetic.render.stereo_cameras`).
 
     Returns
     -------
@@ -138,12 +142,12 @@ def write_scene(
     width, height = (int(v) for v in image_size)
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    margin = _terrain_margin(size, gsd, width, height, base_to_height, seed)
+    margin = _terrain_margin(size, gsd, width, height, base_to_height, seed, n_images)
     city = make_city(seed, size=size, n_buildings=n_buildings, margin=margin)
     centre = np.array([size / 2])
     target = np.array([size / 2, size / 2, float(city.terrain.height(centre, centre)[0])])
     cameras = stereo_cameras(
-        target, gsd=gsd, width=width, height=height, base_to_height=base_to_height, seed=seed
+        target, gsd=gsd, width=width, height=height, base_to_height=base_to_height, seed=seed, n_images=n_images
     )
     check_coverage(city, cameras)
     timings["city"] = time.perf_counter() - start
@@ -179,7 +183,7 @@ def write_scene(
 
 
 def _terrain_margin(
-    size: float, gsd: float, width: int, height: int, b_h: float, seed: int
+    size: float, gsd: float, width: int, height: int, b_h: float, seed: int, n_images: int = 2
 ) -> float:
     """How far the terrain must extend beyond the city so every pixel sees ground.
 
@@ -188,7 +192,7 @@ def _terrain_margin(
     """
     target = np.array([size / 2, size / 2, 0.0])
     cams = stereo_cameras(
-        target, gsd=gsd, width=width, height=height, base_to_height=b_h, seed=seed
+        target, gsd=gsd, width=width, height=height, base_to_height=b_h, seed=seed, n_images=n_images
     )
     reach = 0.0
     for cam in cams:

@@ -14,7 +14,15 @@ from recon3d.core.raster import Raster, grid_for_bounds
 
 log = logging.getLogger(__name__)
 
-__all__ = ["choose_resolution", "fill_small_holes", "grid_points", "make_dsm", "point_spacing", "seen_by_all"]
+__all__ = [
+    "choose_resolution",
+    "fill_small_holes",
+    "grid_points",
+    "grid_stereo",
+    "make_dsm",
+    "point_spacing",
+    "seen_by_all",
+]
 
 #: "Nice" cell sizes, in CRS units, from which the automatic resolution is picked.
 NICE_STEPS = (0.1, 0.2, 0.25, 0.5, 1.0, 2.0, 2.5, 5.0, 10.0, 20.0)
@@ -95,6 +103,54 @@ def grid_points(
     return out.reshape(shape)
 
 
+def grid_stereo(
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, observed: np.ndarray, source: np.ndarray | None = None
+) -> np.ndarray:
+    """Highest point per cell from stereo: observations first, pairs outvoting each other.
+
+    Each source (a stereo pair) gives the highest of its observed points in a cell, and
+    the cell takes the median over the sources that observed it, so one pair's spill
+    at a building edge is outvoted by the others. A cell no source observed takes its
+    highest guessed point (a disparity filled in, not confirmed by the images): a guess
+    never outweighs an observation.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+    transform : affine.Affine
+    shape : (rows, cols)
+    observed : (n,) bool
+    source : (n,) int, optional
+        Which pair each point comes from (one source when omitted).
+
+    Returns
+    -------
+    (rows, cols) float64
+        NaN in cells without points.
+    """
+    rows, cols = shape
+    out = grid_points(xyz, transform, shape, reducer="max")
+    col = np.floor((xyz[:, 0] - transform.c) / transform.a).astype(np.int64)
+    row = np.floor((xyz[:, 1] - transform.f) / transform.e).astype(np.int64)
+    use = np.asarray(observed, bool) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    cell = (row * cols + col)[use]
+    src = np.zeros(len(cell), np.int64) if source is None else np.asarray(source, np.int64)[use]
+    z = xyz[use, 2]
+    if not len(z):
+        return out
+    order = np.lexsort((z, src, cell))  # by cell, then source, then height
+    cell, src, z = cell[order], src[order], z[order]
+    top = np.r_[(cell[1:] != cell[:-1]) | (src[1:] != src[:-1]), True]  # highest of each (cell, source)
+    cell, z = cell[top], z[top]
+    order = np.lexsort((z, cell))
+    cell, z = cell[order], z[order]
+    start = np.r_[0, np.flatnonzero(cell[1:] != cell[:-1]) + 1]
+    count = np.diff(np.r_[start, len(cell)])
+    median = 0.5 * (z[start + (count - 1) // 2] + z[start + count // 2])
+    out.reshape(-1)[cell[start]] = median
+    return out
+
+
 def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells that do not touch the border.
 
@@ -144,20 +200,35 @@ def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> 
     return out
 
 
-def make_dsm(cloud: PointCloud, resolution: float, *, max_hole_cells: int, rim: str = "mean") -> Raster:
+def make_dsm(
+    cloud: PointCloud,
+    resolution: float,
+    *,
+    max_hole_cells: int,
+    rim: str = "mean",
+    observed: np.ndarray | None = None,
+    source: np.ndarray | None = None,
+) -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
     Points classified as noise (7) are left out; ``rim`` as in :func:`fill_small_holes`.
+    With ``observed`` (and ``source``), per-point (n,) arrays of a stereo cloud, the
+    cells are gridded by :func:`grid_stereo`.
     """
     xyz = cloud.xyz
     c = cloud.classification
-    if c is not None:
-        xyz = xyz[c != 7]
+    keep = np.ones(len(xyz), bool) if c is None else c != 7
+    xyz = xyz[keep]
     lo, hi = cloud.bounds
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
-    dsm = grid_points(xyz, transform, shape, reducer="max")
+    if observed is None:
+        dsm, method = grid_points(xyz, transform, shape, reducer="max"), "highest point per cell"
+    else:
+        source = None if source is None else np.asarray(source)[keep]
+        dsm = grid_stereo(xyz, transform, shape, observed=np.asarray(observed, bool)[keep], source=source)
+        method = "highest observed point per cell and pair, median over the pairs"
     dsm = fill_small_holes(dsm, max_hole_cells, rim=rim)
-    return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": "highest point per cell"})
+    return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": method})
 
 
 def seen_by_all(
