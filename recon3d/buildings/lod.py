@@ -1024,11 +1024,9 @@ def _open_crossings(regions, radius: float, tol: float):
 
     regions = list(regions)
     for _ in range(len(regions)):
-        pts = [np.asarray(r.coords)[:-1, :2] for poly, _ in regions for r in (poly.exterior, *poly.interiors)]
-        owner = np.repeat(
-            np.arange(len(regions)), [sum(len(r.coords) - 1 for r in (p.exterior, *p.interiors)) for p, _ in regions]
-        )
-        pts = np.concatenate(pts)
+        rings = [(i, np.asarray(r.coords)[:-1, :2]) for i, (p, _) in enumerate(regions) for r in (p.exterior, *p.interiors)]
+        pts = np.concatenate([xy for _, xy in rings])
+        owner = np.concatenate([np.full(len(xy), i) for i, xy in rings])
         crossing = next(
             (pts[k] for k, near in enumerate(cKDTree(pts).query_ball_point(pts, tol)) if len(set(owner[near])) >= 4),
             None,

@@ -318,8 +318,7 @@ def make_dsm(s: RunState) -> None:
         s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean",
         observed=observed, source=a.get("point_source_id") if observed is not None else None,
     )
-    c = s.cloud.classification
-    gridded = s.cloud.xyz if c is None else s.cloud.xyz[c != ASPRS.NOISE]  # as make_dsm
+    gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
     s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
     observed = s.cloud.attributes.get("observed")

@@ -47,10 +47,11 @@ def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, d
         # shadowed roof faces); one they contradict is a guess (a hidden courtyard)
         guessed = result.filled & ~(photo_consistency(left, right, result.disparity) >= 0.4)
         cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle, guessed=guessed)
-        cloud.attributes["point_source_id"] = np.full(len(cloud), len(clouds) + 1, np.uint16)  # the pair
+        source = len(clouds) + 1  # the pair's id in cloud.laz
+        cloud.attributes["point_source_id"] = np.full(len(cloud), source, np.uint16)
         report["pairs"].append({
             "pair": pair.name,
-            "point_source_id": len(clouds) + 1,  # of its points in cloud.laz
+            "point_source_id": source,
             "vertical_parallax_px": pair.parallax,
             "disparity_range": {"value": [dmin, dmax], "reason": why},
             "matched_percent": result.params.get("matched_percent"),

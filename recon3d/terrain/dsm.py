@@ -22,6 +22,7 @@ __all__ = [
     "make_dsm",
     "point_spacing",
     "seen_by_all",
+    "surface_points",
 ]
 
 #: "Nice" cell sizes, in CRS units, from which the automatic resolution is picked.
@@ -200,6 +201,12 @@ def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> 
     return out
 
 
+def surface_points(cloud: PointCloud) -> np.ndarray:
+    """(n,) bool: the points a DSM is gridded from (all but those classified noise, 7)."""
+    c = cloud.classification
+    return np.ones(len(cloud), bool) if c is None else c != 7
+
+
 def make_dsm(
     cloud: PointCloud,
     resolution: float,
@@ -215,10 +222,8 @@ def make_dsm(
     With ``observed`` (and ``source``), per-point (n,) arrays of a stereo cloud, the
     cells are gridded by :func:`grid_stereo`.
     """
-    xyz = cloud.xyz
-    c = cloud.classification
-    keep = np.ones(len(xyz), bool) if c is None else c != 7
-    xyz = xyz[keep]
+    keep = surface_points(cloud)
+    xyz = cloud.xyz[keep]
     lo, hi = cloud.bounds
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
     if observed is None:
