@@ -41,14 +41,14 @@ def test_model_dsm_takes_the_highest_surface_per_cell():
 def test_model_dsm_against_the_measured_dsm_on_delft(delft_run):
     """Regression on real data: the model against the measured DSM on building cells.
 
-    Measured 0.93 m RMS over the cells that hold LiDAR points (1.00 with the cells
-    filled from their rim, mostly in the scan shadow beside walls; 1.09 with a spire's
-    LoD1.3 from plane fragments rather than height terraces, 1.20 with one ray per
-    cell): the outline ring, two small towers and roof details LoD2.2 leaves out carry
-    most of it; the issue's target is 0.5 m.
+    Measured 0.88 m RMS over the cells that hold LiDAR points (1.00 with the cells
+    filled from their rim, mostly in the scan shadow beside walls; 0.93 when a spire's
+    terraces under 1 m2 went to their neighbours, 1.09 with its LoD1.3 from plane
+    fragments rather than height terraces, 1.20 with one ray per cell): the outline
+    ring and roof details LoD2.2 leaves out carry most of it; the issue's target is 0.5 m.
     """
     table = next(t for t in delft_run.report["accuracy"] if t["reference"] == "measured DSM on roofs")
     assert abs(table["mean"]) < 0.3, table
-    assert table["rms"] < 0.97, table
+    assert table["rms"] < 0.91, table
     assert table["nmad"] < 0.25, table
     assert table["within_1m"] > 90.0, table

@@ -336,7 +336,8 @@ def _lod13_of(grid, fp, seg, roof_pts, g, u, cfg) -> Solid:
     if seg.coverage >= 0.5:
         return _lod13(grid, fp, roof_pts, seg, g, u, cfg)
     levels = _height_levels(roof_pts, grid.cell, u.height(getattr(cfg, "lod13_step", 1.0)))
-    level_grid = _label_grid(fp, roof_pts, levels, grid.cell, u.area(1.0))
+    # no smallest area: the top terraces of a spire are a cell or two wide
+    level_grid = _label_grid(fp, roof_pts, levels, grid.cell, grid.cell**2)
     return _lod13(level_grid, fp, roof_pts, None, g, u, cfg, labels=levels)
 
 
