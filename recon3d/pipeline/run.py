@@ -36,7 +36,7 @@ from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
 from recon3d.io.las import las_date, read_las, write_las
 from recon3d.quality import evaluate
-from recon3d.quality.rasterize import model_dsm
+from recon3d.quality.rasterize import model_dsm, roof_cover
 from recon3d.terrain import dsm as dsm_stage
 from recon3d.terrain import dtm as dtm_stage
 from recon3d.terrain import ground as ground_stage
@@ -82,6 +82,7 @@ class RunState:
     dtm: Raster | None = None
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
+    roof_cover: np.ndarray | None = None  # share of each cell under the model's roofs (1 = wholly)
     is_ground: np.ndarray | None = None
     vegetation: np.ndarray | None = None
     vegetation_share: np.ndarray | None = None
@@ -471,6 +472,7 @@ def build_solids(s: RunState) -> None:
 
 def rasterize_model(s: RunState) -> None:
     s.model_dsm = model_dsm(s.city, s.dtm)
+    s.roof_cover = roof_cover(s.city, s.dtm)
 
 
 def evaluate_products(s: RunState) -> None:
@@ -516,11 +518,13 @@ def evaluate_products(s: RunState) -> None:
     on_buildings = (s.labels > 0) & np.isfinite(roofs) & ~(np.nan_to_num(s.vegetation_share) > 0.5) & ~s.dsm_filled
     from recon3d.core.accuracy import AccuracyReport
 
-    tables.append(
-        AccuracyReport.from_errors(
-            -roofs[on_buildings], product="model DSM", reference="measured DSM on roofs", metres_per_unit=u.vertical
+    # cells a wall crosses mix roof and ground: there the difference measures where the
+    # outline runs (its own accuracy, planimetric), not the roof's height
+    inside_roofs = on_buildings & (s.roof_cover >= 1.0)
+    for cells, reference in ((on_buildings, "measured DSM on roofs"), (inside_roofs, "measured DSM inside roofs")):
+        tables.append(
+            AccuracyReport.from_errors(-roofs[cells], product="model DSM", reference=reference, metres_per_unit=u.vertical)
         )
-    )
     s.report["accuracy"] = [t.to_dict() for t in tables]
     _roof_errors(s, np.where(s.dsm_filled, np.nan, -roofs))
     statuses = [b.status for b in s.city]
