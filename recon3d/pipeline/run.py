@@ -43,7 +43,7 @@ from recon3d.terrain import ground as ground_stage
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunState", "run"]
+__all__ = ["RunState", "model_check_cells", "run"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -513,9 +513,7 @@ def evaluate_products(s: RunState) -> None:
         products = {"DSM": s.dsm, "DTM": s.dtm, "model DSM": s.model_dsm}
         tables += evaluate.against_checkpoints(products, s.checkpoints, u)
     roofs = s.dsm.data - s.model_dsm.data
-    # cells whose top is a tree crown over a roof measure the tree, not the model; cells
-    # filled from their rim (no point: LiDAR shadow beside walls) measure nothing
-    on_buildings = (s.labels > 0) & np.isfinite(roofs) & ~(np.nan_to_num(s.vegetation_share) > 0.5) & ~s.dsm_filled
+    on_buildings = model_check_cells(s)
     from recon3d.core.accuracy import AccuracyReport
 
     # cells a wall crosses mix roof and ground: there the difference measures where the
@@ -536,6 +534,17 @@ def evaluate_products(s: RunState) -> None:
         "lods": {lod: sum(lod in b.solids for b in s.city) for lod in sorted({k for b in s.city for k in b.solids})},
         "blocks": len(s.city.blocks()),  # split at height jumps: Building + BuildingParts
     }
+
+
+def model_check_cells(s: RunState) -> np.ndarray:
+    """(rows, cols) bool: the building cells on which the model DSM is checked against
+    the measured DSM.
+
+    Cells whose top is a tree crown over a roof measure the tree, not the model; cells
+    filled from their rim (no point: LiDAR shadow beside walls) measure nothing.
+    """
+    valid = np.isfinite(s.dsm.data) & np.isfinite(s.model_dsm.data)
+    return (s.labels > 0) & valid & ~(np.nan_to_num(s.vegetation_share) > 0.5) & ~s.dsm_filled
 
 
 def _roof_errors(s: RunState, model_minus_dsm: np.ndarray) -> None:

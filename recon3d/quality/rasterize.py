@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "roof_cover"]
+__all__ = ["model_dsm", "roof_cover", "surface_at"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -33,7 +33,7 @@ def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: 
     Raster
         (rows, cols) float32 model DSM.
     """
-    highest, _ = _cast(city, dtm, lod, samples)
+    highest, _ = _lattice(city, dtm, lod, samples)
     out = dtm.data.astype(np.float64).copy()
     hit = np.isfinite(highest)
     out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], highest[hit]), highest[hit])
@@ -44,44 +44,72 @@ def roof_cover(city: CityModel, grid: Raster, *, lod: str | None = None, samples
     """(rows, cols) float: the share of each cell's ``samples`` x ``samples`` vertical
     rays that hit a building solid (1 wholly on roofs, 0 off the buildings; in
     between, a cell that a wall crosses)."""
-    return _cast(city, grid, lod, samples)[1]
+    return _lattice(city, grid, lod, samples)[1]
 
 
-def _cast(city: CityModel, grid: Raster, lod: str | None, samples: int) -> tuple[np.ndarray, np.ndarray]:
+def surface_at(city: CityModel, x: np.ndarray, y: np.ndarray, dtm: Raster, *, lod: str | None = None) -> np.ndarray:
+    """(n,) height of the model's surface at world positions: the highest solid
+    above each (x, y), or the DTM (bilinear) where no solid stands.
+
+    Sampled at a cloud's own points and gridded the way the DSM is, this is the DSM a
+    scan of the model would give: the like-for-like counterpart of the measured DSM.
+    """
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    z = _Scene(city, lod).highest(x, y)
+    return np.where(np.isfinite(z), z, dtm.sample(x, y, bilinear=True))
+
+
+class _Scene:
+    """The solids of one LoD per building in an Open3D ray-casting scene (local frame)."""
+
+    def __init__(self, city: CityModel, lod: str | None) -> None:
+        import open3d as o3d
+
+        meshes = []
+        for b in city:
+            key = lod if lod in b.solids else max(b.solids, default=None, key=float)
+            if key is not None:
+                meshes.append(b.solids[key].to_trimesh())
+        self.scene = None
+        if not meshes:
+            return
+        vertices = np.concatenate([m.vertices for m in meshes])
+        offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+        faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
+        )
+        self.origin = np.asarray(city.frame.origin, np.float64)
+        self.top = float(vertices[:, 2].max()) + 10.0
+
+    def highest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(n,) world height of the first hit of a vertical ray from above, -inf where none."""
+        import open3d as o3d
+
+        if self.scene is None:
+            return np.full(np.shape(x), -np.inf)
+        rays = np.zeros((np.size(x), 6), np.float32)
+        rays[:, 0] = np.ravel(x) - self.origin[0]
+        rays[:, 1] = np.ravel(y) - self.origin[1]
+        rays[:, 2] = self.top
+        rays[:, 5] = -1.0
+        t_hit = self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        return (self.top - t_hit + self.origin[2]).reshape(np.shape(x))  # -inf where no hit
+
+
+def _lattice(city: CityModel, grid: Raster, lod: str | None, samples: int) -> tuple[np.ndarray, np.ndarray]:
     """(highest hit or -inf, share of rays that hit), both (rows, cols), over ``grid``."""
-    import open3d as o3d
-
+    scene = _Scene(city, lod)
     highest = np.full(grid.shape, -np.inf)
     hits = np.zeros(grid.shape)
-    meshes = []
-    for b in city:
-        key = lod if lod in b.solids else max(b.solids, default=None, key=float)
-        if key is not None:
-            meshes.append(b.solids[key].to_trimesh())
-    if not meshes:
-        return highest, hits
-    vertices = np.concatenate([m.vertices for m in meshes])
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=True)])
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
-    )
     x, y = grid.cell_centers()
     gx, gy = np.meshgrid(x, y)
-    origin = np.asarray(city.frame.origin)
-    top = float(vertices[:, 2].max()) + 10.0
     a, e = grid.transform.a, grid.transform.e
     steps = (np.arange(samples) + 0.5) / samples - 0.5  # offsets in cells, centred
-    rays = np.zeros((gx.size, 6), np.float32)
-    rays[:, 2] = top
-    rays[:, 5] = -1.0
     for sy in steps:
         for sx in steps:
-            rays[:, 0] = gx.ravel() + sx * a - origin[0]
-            rays[:, 1] = gy.ravel() + sy * e - origin[1]
-            t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
-            z = (top - t_hit + origin[2]).reshape(grid.shape)  # -inf where no hit
+            z = scene.highest(gx + sx * a, gy + sy * e)
             hit = np.isfinite(z)
             np.maximum(highest, z, out=highest, where=hit)
             hits += hit
