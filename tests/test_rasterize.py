@@ -10,7 +10,7 @@ from recon3d.buildings.lod import lod1_solid
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame
 from recon3d.core.raster import Raster
-from recon3d.quality.rasterize import model_dsm, roof_cover
+from recon3d.quality.rasterize import model_dsm, roof_cover, surface_at
 
 
 def _box_on_flat_terrain():
@@ -49,6 +49,15 @@ def test_roof_cover_is_the_share_of_each_cell_under_the_roof():
     assert np.array_equal(cover == 0.0, area < 0.1)  # the walls stop 0.35 m into the cells they cut
     crossed = (area > 0) & (area < 1)
     assert np.all(np.abs(cover[crossed] - area[crossed]) < 0.34)  # a ray stands for a ninth of the cell
+
+
+def test_surface_at_scans_the_model_where_the_points_are():
+    """Roof height over the box, the terrain beside it, exactly at the given positions:
+    a point 1 cm inside the wall is on the roof, 1 cm outside on the ground."""
+    city, dtm, footprint = _box_on_flat_terrain()
+    x = np.array([1007.0, 1002.66, 1002.64, 1012.34, 1012.36, 1001.0])
+    y = np.array([2005.0, 2005.0, 2005.0, 2008.34, 2008.34, 2001.0])
+    assert np.allclose(surface_at(city, x, y, dtm), [17, 17, 5, 17, 5, 5], atol=1e-4)
 
 
 def test_model_dsm_against_the_measured_dsm_on_delft(delft_run):
