@@ -59,8 +59,9 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+@click.option("--workers", type=click.IntRange(min=1), help="Processes building the solids  [default: the CPUs available, from 32 buildings on]; the output does not depend on it.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, config_path, overwrite, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, config_path, overwrite, workers, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
     or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
 
@@ -100,6 +101,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
             gcps=gcps,
             config=config,
             overwrite=overwrite,
+            workers=workers,
             progress=progress,
         )
     if not ctx.obj["quiet"]:

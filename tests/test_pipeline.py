@@ -164,10 +164,12 @@ def test_checkpoints_report(tmp_path, delft_run):
 
 
 def test_same_input_same_bytes(ign_run, tmp_path):
-    """Products are byte-identical run to run (run.json and report.html hold timings)."""
+    """Products are byte-identical run to run and whatever the number of processes
+    building the solids (run.json and report.html hold timings)."""
     from recon3d.pipeline.run import run
 
-    again = run(shared("lidar/ign_village_2154.laz"), tmp_path / "again")
+    again = run(shared("lidar/ign_village_2154.laz"), tmp_path / "again", workers=3)
+    assert again.auto["workers"]["value"] == 3
     for name in CONTRACT:
         if name not in ("run.json",):
             a, b = (ign_run.out_dir / name).read_bytes(), (again.out_dir / name).read_bytes()

@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "roof_cover", "surface_at"]
+__all__ = ["model_dsm", "render", "roof_cover", "surface_at"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -33,11 +33,7 @@ def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: 
     Raster
         (rows, cols) float32 model DSM.
     """
-    highest, _ = _lattice(city, dtm, lod, samples)
-    out = dtm.data.astype(np.float64).copy()
-    hit = np.isfinite(highest)
-    out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], highest[hit]), highest[hit])
-    return dtm.like(out, product="model DSM", method=f"building solids ray-cast over the DTM, highest of {samples} x {samples} rays per cell")
+    return render(city, dtm, lod=lod, samples=samples)[0]
 
 
 def roof_cover(city: CityModel, grid: Raster, *, lod: str | None = None, samples: int = 3) -> np.ndarray:
@@ -45,6 +41,16 @@ def roof_cover(city: CityModel, grid: Raster, *, lod: str | None = None, samples
     rays that hit a building solid (1 wholly on roofs, 0 off the buildings; in
     between, a cell that a wall crosses)."""
     return _lattice(city, grid, lod, samples)[1]
+
+
+def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> tuple[Raster, np.ndarray]:
+    """:func:`model_dsm` and :func:`roof_cover` from one casting of the rays."""
+    highest, cover = _lattice(city, dtm, lod, samples)
+    out = dtm.data.astype(np.float64).copy()
+    hit = np.isfinite(highest)
+    out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], highest[hit]), highest[hit])
+    method = f"building solids ray-cast over the DTM, highest of {samples} x {samples} rays per cell"
+    return dtm.like(out, product="model DSM", method=method), cover
 
 
 def surface_at(city: CityModel, x: np.ndarray, y: np.ndarray, dtm: Raster, *, lod: str | None = None) -> np.ndarray:

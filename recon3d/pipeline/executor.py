@@ -1,0 +1,54 @@
+"""Per-building work on local worker processes.
+
+Buildings are independent once the terrain and the footprints are known, so their
+solids can be built in parallel. Results come back in the order of the jobs and each
+job's result depends only on the job (Open3D's RANSAC is seeded per call and held to
+one thread), so the output is the same for any number of workers.
+
+Workers are started with the "forkserver" method: forking the pipeline's own process,
+which may hold OpenMP or TBB thread pools, can deadlock a child.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+__all__ = ["default_workers", "map_ordered"]
+
+
+def default_workers() -> int:
+    """The CPUs this process may use (its affinity mask, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def map_ordered(func: Callable[[Any], Any], jobs: Iterable[Any], workers: int) -> list[Any]:
+    """``[func(job) for job in jobs]``, on ``workers`` processes when more than one.
+
+    Parameters
+    ----------
+    func : callable
+        A module-level function (it is pickled by name).
+    jobs : iterable
+        Picklable arguments, one per call.
+    workers : int
+        Processes to use; 1 runs everything in this process.
+
+    Returns
+    -------
+    list
+        The results in the order of ``jobs``.
+    """
+    jobs = list(jobs)
+    workers = min(int(workers), len(jobs))
+    if workers <= 1:
+        return [func(job) for job in jobs]
+    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context(method)) as pool:
+        return list(pool.map(func, jobs, chunksize=1))
