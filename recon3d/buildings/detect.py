@@ -91,14 +91,13 @@ def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[s
     -------
     dict of str to (n,) float
         ``roughness`` (square root of the smallest eigenvalue: RMS distance to the best
-        plane, CRS units), ``planarity`` (l2 - l3) / l1, ``linearity`` (l1 - l2) / l1,
-        ``scattering`` l3 / l1, ``verticality`` 1 - |n_z| of the plane normal and
-        ``normal_variation`` 1 - |mean of the neighbours' normals| (0 on a plane);
-        and ``neighbours`` (n, k) int, indices of each point's neighbours.
+        plane, CRS units), ``planarity`` (l2 - l3) / l1, ``linearity`` (l1 - l2) / l1
+        and ``scattering`` l3 / l1; and ``neighbours`` (n, k) int, indices of each
+        point's neighbours.
     """
     xyz = np.asarray(xyz, np.float64)
     n = len(xyz)
-    names = ("roughness", "planarity", "linearity", "scattering", "verticality", "normal_variation")
+    names = ("roughness", "planarity", "linearity", "scattering")
     out = {key: np.zeros(n) for key in names}
     if n == 0:
         out["neighbours"] = np.zeros((0, 0), np.int64)
@@ -107,23 +106,17 @@ def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[s
     centred = xyz - xyz.mean(axis=0)
     _, nb = cKDTree(centred).query(centred, k=k, workers=workers)
     nb = nb.reshape(n, k)
-    normal = np.zeros((n, 3))
     for s in range(0, n, CHUNK):  # bounded memory: (chunk, k, 3) at a time
         sl = slice(s, min(s + CHUNK, n))
         p = centred[nb[sl]]
         p -= p.mean(axis=1, keepdims=True)
-        w, v = np.linalg.eigh(np.einsum("nki,nkj->nij", p, p) / k)
+        w = np.linalg.eigvalsh(np.matmul(p.transpose(0, 2, 1), p) / k)
         l3, l2, l1 = (np.clip(w[:, i], 0.0, None) for i in range(3))
         safe = np.where(l1 > 0, l1, 1.0)
         out["roughness"][sl] = np.sqrt(l3)
         out["planarity"][sl] = np.where(l1 > 0, (l2 - l3) / safe, 0.0)
         out["linearity"][sl] = np.where(l1 > 0, (l1 - l2) / safe, 0.0)
         out["scattering"][sl] = np.where(l1 > 0, l3 / safe, 0.0)
-        normal[sl] = v[:, :, 0] * np.where(v[:, 2:3, 0] < 0, -1.0, 1.0)
-    out["verticality"] = 1.0 - np.abs(normal[:, 2])
-    for s in range(0, n, CHUNK):
-        sl = slice(s, min(s + CHUNK, n))
-        out["normal_variation"][sl] = 1.0 - np.linalg.norm(normal[nb[sl]].mean(axis=1), axis=1)
     out["neighbours"] = nb
     return out
 
