@@ -63,17 +63,19 @@ def test_surface_at_scans_the_model_where_the_points_are():
 def test_model_dsm_against_the_measured_dsm_on_delft(delft_run):
     """Regression on real data: the model against the measured DSM on building cells.
 
-    Measured 0.88 m RMS over the cells that hold LiDAR points (1.00 with the cells
-    filled from their rim, mostly in the scan shadow beside walls; 0.93 when a spire's
-    terraces under 1 m2 went to their neighbours, 1.09 with its LoD1.3 from plane
-    fragments rather than height terraces, 1.20 with one ray per cell): the outline
-    ring and roof details LoD2.2 leaves out carry most of it; the issue's target is 0.5 m.
+    Measured 0.86 m RMS over the cells that hold LiDAR points (1.00 with the cells
+    filled from their rim, mostly in the scan shadow beside walls; 0.88 when cleaning
+    the roof-label grid could move narrow eaves onto a lower plane, 0.93 when a
+    spire's terraces under 1 m2 went to their neighbours, 1.09 with its LoD1.3 from
+    plane fragments rather than height terraces, 1.20 with one ray per cell). A
+    perfect model would score about 0.5 m here (scripts/model_dsm_floor.py): cells a
+    wall crosses get the roof or the ground depending on where the points fell.
     """
     table = next(t for t in delft_run.report["accuracy"] if t["reference"] == "measured DSM on roofs")
     assert abs(table["mean"]) < 0.3, table
-    assert table["rms"] < 0.91, table
+    assert table["rms"] < 0.89, table
     assert table["nmad"] < 0.25, table
     assert table["within_1m"] > 90.0, table
-    # wholly under the roofs, the outline's position drops out: measured 0.72 m
+    # wholly under the roofs, the outline's position drops out: measured 0.69 m
     inside = next(t for t in delft_run.report["accuracy"] if t["reference"] == "measured DSM inside roofs")
-    assert inside["n"] > 0.9 * table["n"] and inside["rms"] < 0.76, inside
+    assert inside["n"] > 0.9 * table["n"] and inside["rms"] < 0.73, inside

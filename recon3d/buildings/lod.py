@@ -351,7 +351,8 @@ def _segment(roof_pts, fp, params, u):
     if not seg.planes:
         return seg, None, "too_few_points" if len(roof_pts) < seg.min_points else "no_roof_planes"
     cell = float(np.clip(1.5 * seg.spacing, u.length(0.25), u.length(1.0)))
-    grid = _label_grid(fp, roof_pts, seg.labels, cell, max(u.area(1.0), 0.5 * params.min_plane_area))
+    planes = [p.plane for p in seg.planes]
+    grid = _label_grid(fp, roof_pts, seg.labels, cell, max(u.area(1.0), 0.5 * params.min_plane_area), planes=planes, step=2 * params.distance)
     return seg, grid, None
 
 
@@ -441,8 +442,15 @@ def _issues(solid: Solid, u) -> list:
     return check_solid(solid, planarity_tol=u.length(0.01), snap=u.length(0.001))
 
 
-def _label_grid(fp, points, labels, cell, min_area) -> _Grid:
-    """Raster of plane labels over the footprint (every touched cell labelled)."""
+def _label_grid(fp, points, labels, cell, min_area, *, planes=None, step=0.5) -> _Grid:
+    """Raster of plane labels over the footprint (every touched cell labelled).
+
+    With the ``planes`` of the labels, the clean-up (majority filter, small patches)
+    never moves a cell onto a plane more than ``step`` off its points while its own
+    plane fits them: a strip of roof one cell wide (the steep eave of a mansard beside
+    a lower annex) would otherwise go to the lower neighbour and drop its points by
+    the whole step.
+    """
     import affine
     import rasterio.features
     from scipy import ndimage
@@ -472,7 +480,7 @@ def _label_grid(fp, points, labels, cell, min_area) -> _Grid:
     score = ndimage.uniform_filter(onehot, size=(1, 3, 3), mode="constant")
     smooth = np.where(inside, score.argmax(axis=0), -1)
     smooth[inside & (score.max(axis=0) <= 0)] = grid[inside & (score.max(axis=0) <= 0)]
-    grid = smooth
+    raw, grid = grid, smooth
     min_cells = max(1, int(round(min_area / cell**2)))
     for _ in range(2):
         small = np.zeros_like(inside)
@@ -486,8 +494,38 @@ def _label_grid(fp, points, labels, cell, min_area) -> _Grid:
             break
         grid[small] = -1
         grid = _fill(grid, inside)
+    if planes is not None:
+        grid = _keep_fitting(grid, raw, points[keep], lab[keep], row * w + col, transform, planes, step)
     point_labels = np.where(keep, lab, -1)
     return _Grid(_unpinch(grid, inside), inside, transform, cell, points[:, :2], point_labels)
+
+
+def _keep_fitting(smooth, raw, points, labels, flat, transform, planes, step) -> np.ndarray:
+    """``smooth`` with the cells whose points lie on their ``raw`` label's plane but
+    more than ``step`` off the plane the filter gave them set back to ``raw``.
+
+    ``points`` (n, 3) carry plane ``labels`` (n,) and fall in the cells ``flat`` (n,)
+    (row * width + col) of the grids.
+    """
+    changed = (smooth != raw) & (raw >= 0) & (smooth >= 0)
+    if not changed.any():
+        return smooth
+    own = labels == raw.ravel()[flat]  # the points that voted for the raw label
+    count = np.bincount(flat[own], minlength=raw.size)
+    zsum = np.bincount(flat[own], weights=points[own, 2], minlength=raw.size)
+    rows, cols = np.nonzero(changed & (count.reshape(raw.shape) > 0))
+    if not len(rows):
+        return smooth
+    x = transform.c + (cols + 0.5) * transform.a
+    y = transform.f + (rows + 0.5) * transform.e
+    z = zsum.reshape(raw.shape)[rows, cols] / count.reshape(raw.shape)[rows, cols]
+    coef = np.asarray(planes)
+    off_raw = np.abs(_height(coef[raw[rows, cols]].T, x, y) - z)
+    off_new = np.abs(_height(coef[smooth[rows, cols]].T, x, y) - z)
+    back = (off_new > step) & (off_raw < 0.5 * step)
+    out = smooth.copy()
+    out[rows[back], cols[back]] = raw[rows[back], cols[back]]
+    return out
 
 
 def _unpinch(grid: np.ndarray, inside: np.ndarray) -> np.ndarray:
