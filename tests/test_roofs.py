@@ -19,7 +19,7 @@ from recon3d.buildings import lod
 from recon3d.buildings.roofs import RoofParams, roof_type, segment_roof
 from recon3d.config import LodConfig
 from recon3d.core.city import Solid
-from recon3d.core.geo import LocalFrame
+from recon3d.core.geo import LocalFrame, Units
 from recon3d.quality import roofs as roofq
 from recon3d.quality.meshcheck import check_solid
 
@@ -409,6 +409,21 @@ def test_four_roofs_meeting_at_a_point():
     assert check_solid(solid) == []
     tops = sorted({round(float(z), 1) for z in solid.vertices[:, 2]})
     assert tops == [0.0, 10.0, 10.5, 11.0, 11.5]
+
+
+def test_roof_part_with_a_neck_snapping_would_close():
+    """A roof part wraps a wedge-shaped part whose tip stops 2 mm short of the outline:
+    snapping vertices (3 mm) would close that neck, the part would touch itself there
+    and its walls would share a vertical edge four times (val3dity 304). The neck is
+    opened first, and the solid is valid."""
+    wedge = shapely.Polygon([(0, 4), (9.998, 5), (0, 6)])
+    around = shapely.box(0, 0, 10, 10).difference(wedge)
+    assert lod._necks([np.asarray(around.exterior.coords)[:-1]], 0.004).tolist() == [[9.998, 5.0]]
+    planes = [np.array([0.0, 0.0, 1.0, -10.0]), np.array([0.0, 0.0, 1.0, -12.0])]
+    regions = lod._open_pinches([(around, 0), (wedge, 1)], 0.05, 0.004)
+    assert not any(len(lod._necks([lod._drop_close(np.asarray(p.exterior.coords)[:-1], 0.004)], 0.004)) for p, _ in regions)
+    solid = lod._partition_solid(regions, planes, 0.0, Units())
+    assert check_solid(solid) == []
 
 
 def test_determinism_and_order_independence():

@@ -997,8 +997,10 @@ def _clean_ring(ring: np.ndarray) -> np.ndarray:
 
 def _open_pinches(regions, radius: float, tol: float):
     """Regions that touch themselves at a vertex (a hole touching the outline, two lobes
-    meeting at a corner; vertices of non-consecutive ring positions closer than ``tol``)
-    give the part of them within ``radius`` of that vertex to the neighbour covering
+    meeting at a corner; vertices of non-consecutive ring positions closer than ``tol``,
+    or a vertex closer than ``tol`` to an edge of the region it does not end: a neck
+    that snapping the vertices closes) give the part of them within ``radius`` of that
+    vertex to the neighbour covering
     most of the rest of that disc, so no part of the roof meets itself at a point (the
     walls there would share an edge four times, val3dity 304)."""
     from scipy.spatial import cKDTree
@@ -1022,6 +1024,8 @@ def _open_pinches(regions, radius: float, tol: float):
                     if (round(mid[0], 6), round(mid[1], 6)) not in failed:
                         found = (i, mid)
                         break
+            if found is None:
+                found = next(((i, v) for v in _necks(rings, tol) if (round(v[0], 6), round(v[1], 6)) not in failed), None)
             if found is not None:
                 break
         if found is None:
@@ -1053,25 +1057,54 @@ def _open_pinches(regions, radius: float, tol: float):
     return regions
 
 
+def _necks(rings: list[np.ndarray], tol: float) -> np.ndarray:
+    """(k, 2) vertices of a region's rings closer than ``tol`` to one of its edges that
+    does not end at them (its own ring's or another's)."""
+    starts = np.concatenate(rings)
+    ends = np.concatenate([np.roll(r, -1, axis=0) for r in rings])
+    ring_of = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
+    index = np.concatenate([np.arange(len(r)) for r in rings])
+    d = ends - starts
+    length2 = np.maximum(np.einsum("ij,ij->i", d, d), 1e-24)
+    rel = starts[:, None, :] - starts[None, :, :]  # vertex k against edge e
+    t = np.clip(np.einsum("kei,ei->ke", rel, d) / length2, 0.0, 1.0)
+    gap = np.linalg.norm(rel - t[..., None] * d[None], axis=2)
+    same = ring_of[:, None] == ring_of[None, :]
+    size = np.array([len(r) for r in rings])[ring_of]
+    incident = same & ((index[:, None] == index[None, :]) | (index[:, None] == (index[None, :] + 1) % size[None, :]))
+    hit = (gap < tol) & ~incident
+    return starts[np.flatnonzero(hit.any(axis=1))]
+
+
 def _open_crossings(regions, radius: float, tol: float):
-    """Where four or more parts meet at one vertex (vertices closer than ``tol``), the
-    part covering most of the disc of ``radius`` around it takes the whole disc, so only
-    junctions of three are left. With heights going up and down around such a vertex
-    (two ridges crossing off level), the four step walls there would share one vertical
+    """Where four or more parts meet at one vertex (boundaries closer than ``tol``: a
+    part whose straight edge runs through the vertex counts too), the part covering
+    most of the disc of ``radius`` around it takes the whole disc, so only junctions
+    of three are left. With heights going up and down around such a vertex (two
+    ridges crossing off level), the four step walls there would share one vertical
     edge (val3dity 304); around a junction of three, every wall edge has two sides."""
     from scipy.spatial import cKDTree
 
     regions = list(regions)
-    for _ in range(len(regions)):
+    tried: set[tuple[float, float]] = set()  # each crossing once, opened or not
+    for _ in range(2 * len(regions) + 2):
         rings = [(i, np.asarray(r.coords)[:-1, :2]) for i, (p, _) in enumerate(regions) for r in (p.exterior, *p.interiors)]
         pts = np.concatenate([xy for _, xy in rings])
         owner = np.concatenate([np.full(len(xy), i) for i, xy in rings])
+        tree = shapely.STRtree([p.boundary for p, _ in regions])
         crossing = next(
-            (pts[k] for k, near in enumerate(cKDTree(pts).query_ball_point(pts, tol)) if len(set(owner[near])) >= 4),
+            (
+                pts[k]
+                for k, near in enumerate(cKDTree(pts).query_ball_point(pts, tol))
+                if len(set(owner[near])) >= 3
+                and (round(pts[k][0] / tol), round(pts[k][1] / tol)) not in tried
+                and len(tree.query(shapely.Point(pts[k]), predicate="dwithin", distance=tol)) >= 4
+            ),
             None,
         )
         if crossing is None:
             return regions
+        tried.add((round(crossing[0] / tol), round(crossing[1] / tol)))
         whole = shapely.union_all([p for p, _ in regions])
         disc = shapely.intersection(shapely.Point(crossing).buffer(radius, quad_segs=2), whole)
         j = int(np.argmax([shapely.intersection(p, disc).area for p, _ in regions]))
@@ -1080,9 +1113,10 @@ def _open_crossings(regions, radius: float, tol: float):
             cut = shapely.union(poly, disc) if i == j else shapely.difference(poly, disc)
             parts = [g for g in shapely.get_parts(cut) if g.geom_type == "Polygon" and g.area > 0]
             if i == j and len(parts) != 1:
-                return regions  # cannot open it: the mesh check will decide
+                break  # cannot open this one: the mesh check will decide
             out += [(g, label) for g in parts]
-        regions = out
+        else:
+            regions = out
     return regions
 
 
