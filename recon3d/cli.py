@@ -422,12 +422,13 @@ def _print_summary(state) -> None:
 def _echo_accuracy(rows: list[dict]) -> None:
     """The accuracy table (metres, percentages) on stdout."""
     if rows:
-        click.echo(f"{'product':<11}{'reference':<32}{'n':>8}{'mean':>8}{'std':>7}{'RMS':>7}{'max':>7}{'NMAD':>7}{'<=1m%':>7}{'<=2m%':>7}")
+        w = max(len(r["product"]) for r in rows) + 1
+        click.echo(f"{'product':<{w}}{'reference':<32}{'n':>8}{'mean':>8}{'std':>7}{'RMS':>7}{'max':>7}{'NMAD':>7}{'<=1m%':>7}{'<=2m%':>7}")
         for r in rows:
             if not r["n"]:
                 continue
             click.echo(
-                f"{r['product']:<11}{r['reference'][:31]:<32}{r['n']:>8}{r['mean']:>8.3f}{r['std']:>7.3f}"
+                f"{r['product']:<{w}}{r['reference'][:31]:<32}{r['n']:>8}{r['mean']:>8.3f}{r['std']:>7.3f}"
                 f"{r['rms']:>7.3f}{r['max_abs']:>7.2f}{r['nmad']:>7.3f}{r['within_1m']:>7.1f}{r['within_2m']:>7.1f}"
             )
 

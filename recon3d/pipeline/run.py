@@ -37,7 +37,7 @@ from recon3d.io.geotiff import write_raster
 from recon3d.io.las import las_date, read_las, write_las
 from recon3d.pipeline.executor import default_workers, map_ordered
 from recon3d.quality import evaluate
-from recon3d.quality.rasterize import render
+from recon3d.quality.rasterize import render, surface_at
 from recon3d.terrain import dsm as dsm_stage
 from recon3d.terrain import dtm as dtm_stage
 from recon3d.terrain import ground as ground_stage
@@ -299,6 +299,18 @@ def _read_side_inputs(s: RunState) -> None:
     s.work_dir.mkdir(parents=True, exist_ok=True)
 
 
+def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int) -> Raster:
+    """The DSM of ``cloud`` (the run's cloud, or one with the same points and other
+    heights) gridded the way this run grids its DSM."""
+    stereo = s.scene is not None  # frame or satellite stereo
+    a = cloud.attributes
+    observed = a["observed"] > 0 if stereo and "observed" in a else None
+    return dsm_stage.make_dsm(
+        cloud, res, max_hole_cells=max_hole_cells, rim="low" if stereo else "mean",
+        observed=observed, source=a.get("point_source_id") if observed is not None else None,
+    )
+
+
 def make_dsm(s: RunState) -> None:
     cfg, u = s.config.dsm, s.units
     spacing = dsm_stage.point_spacing(s.cloud.xyz[:, :2])
@@ -320,13 +332,7 @@ def make_dsm(s: RunState) -> None:
         ("stereo: ground hidden behind buildings, filled from the low side of its rim" if stereo
          else "LiDAR: gaps between scan lines, filled from the mean of their rim"),
     }
-    max_cells = int(u.area(hole_area) / res**2)
-    a = s.cloud.attributes
-    observed = a["observed"] > 0 if stereo and "observed" in a else None
-    s.dsm = dsm_stage.make_dsm(
-        s.cloud, res, max_hole_cells=max_cells, rim="low" if stereo else "mean",
-        observed=observed, source=a.get("point_source_id") if observed is not None else None,
-    )
+    s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2))
     gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
     s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
@@ -551,6 +557,15 @@ def evaluate_products(s: RunState) -> None:
         tables.append(
             AccuracyReport.from_errors(-roofs[cells], product="model DSM", reference=reference, metres_per_unit=u.vertical)
         )
+    # where a cell's points fell decides its height beside walls and on steep roofs;
+    # the model scanned at the same points and gridded alike has no such error
+    scan = _model_scan(s).data - s.dsm.data
+    tables.append(
+        AccuracyReport.from_errors(
+            scan[on_buildings & np.isfinite(scan)], product="model scanned at the points",
+            reference="measured DSM on roofs", metres_per_unit=u.vertical,
+        )
+    )
     s.report["accuracy"] = [t.to_dict() for t in tables]
     _roof_errors(s, np.where(s.dsm_filled, np.nan, -roofs))
     statuses = [b.status for b in s.city]
@@ -562,6 +577,16 @@ def evaluate_products(s: RunState) -> None:
         "lods": {lod: sum(lod in b.solids for b in s.city) for lod in sorted({k for b in s.city for k in b.solids})},
         "blocks": len(s.city.blocks()),  # split at height jumps: Building + BuildingParts
     }
+
+
+def _model_scan(s: RunState) -> Raster:
+    """The DSM a scan of the city model at the cloud's own points would give: each
+    point's height replaced by the model's surface above it (the terrain beside the
+    buildings), gridded like the measured DSM, without hole filling."""
+    xyz = s.cloud.xyz
+    z = surface_at(s.city, xyz[:, 0], xyz[:, 1], s.dtm)
+    scanned = PointCloud(np.column_stack([xyz[:, :2], z]), s.cloud.attributes, s.cloud.crs)
+    return _grid_dsm(s, scanned, s.dsm.resolution, max_hole_cells=0)
 
 
 def model_check_cells(s: RunState) -> np.ndarray:
