@@ -28,7 +28,9 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def map_ordered(func: Callable[[Any], Any], jobs: Iterable[Any], workers: int) -> list[Any]:
+def map_ordered(
+    func: Callable[[Any], Any], jobs: Iterable[Any], workers: int, *, done: Callable[[int], None] | None = None
+) -> list[Any]:
     """``[func(job) for job in jobs]``, on ``workers`` processes when more than one.
 
     Parameters
@@ -39,6 +41,8 @@ def map_ordered(func: Callable[[Any], Any], jobs: Iterable[Any], workers: int) -
         Picklable arguments, one per call.
     workers : int
         Processes to use; 1 runs everything in this process.
+    done : callable, optional
+        Called with the number of results collected so far, after each one.
 
     Returns
     -------
@@ -48,7 +52,17 @@ def map_ordered(func: Callable[[Any], Any], jobs: Iterable[Any], workers: int) -
     jobs = list(jobs)
     workers = min(int(workers), len(jobs))
     if workers <= 1:
-        return [func(job) for job in jobs]
+        results = (func(job) for job in jobs)
+        return _collect(results, done)
     method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
     with ProcessPoolExecutor(workers, mp_context=mp.get_context(method)) as pool:
-        return list(pool.map(func, jobs, chunksize=1))
+        return _collect(pool.map(func, jobs, chunksize=1), done)
+
+
+def _collect(results: Iterable[Any], done: Callable[[int], None] | None) -> list[Any]:
+    out = []
+    for result in results:
+        out.append(result)
+        if done is not None:
+            done(len(out))
+    return out

@@ -66,6 +66,7 @@ class RunState:
     old_buildings_path: Path | None = None
     gcps_path: Path | None = None
     workers: int | None = None  # processes building solids; None: chosen by build_solids
+    progress: Callable[[str], None] | None = None  # reports progress within the running stage
     gcps: Any = None
     old_buildings: list | None = None
     changes: Any = None
@@ -147,7 +148,8 @@ def run(
         CPU this process may use from 32 buildings on, else one. The output does not
         depend on it.
     progress : callable, optional
-        Called as ``progress(stage_name, index, total)`` before each stage.
+        Called as ``progress(stage_name, index, total)`` before each stage, and with
+        ``stage_name`` followed by a count (``"lod 40/133"``) during long stages.
 
     Raises
     ------
@@ -188,6 +190,7 @@ def run(
         for index, (name, stage) in enumerate(STAGES):
             if progress:
                 progress(name, index, len(STAGES))
+                state.progress = lambda detail, n=name, i=index: progress(f"{n} {detail}", i, len(STAGES))
             start = time.perf_counter()
             stage(state)
             state.timings[name] = round(time.perf_counter() - start, 3)
@@ -483,7 +486,8 @@ def build_solids(s: RunState) -> None:
     else:
         workers, why = default_workers(), "the CPUs this process may use"
     s.auto["workers"] = {"value": min(workers, max(len(jobs), 1)), "reason": why}
-    for b, res in zip(built, map_ordered(_build_lods, jobs, workers), strict=True):
+    done = None if s.progress is None else lambda k: s.progress(f"{k}/{len(jobs)} buildings")
+    for b, res in zip(built, map_ordered(_build_lods, jobs, workers, done=done), strict=True):
         b.solids.update(res.solids)
         b.status, b.reason = res.status, res.reason
         b.attributes.update(roof_type=res.roof_type, roof_planes=len(res.planes))
