@@ -495,37 +495,35 @@ def _label_grid(fp, points, labels, cell, min_area, *, planes=None, step=0.5) ->
         grid[small] = -1
         grid = _fill(grid, inside)
     if planes is not None:
-        grid = _keep_fitting(grid, raw, points[keep], lab[keep], row * w + col, transform, planes, step)
+        grid = _keep_fitting(grid, raw, points[keep], row * w + col, planes, step)
     point_labels = np.where(keep, lab, -1)
     return _Grid(_unpinch(grid, inside), inside, transform, cell, points[:, :2], point_labels)
 
 
-def _keep_fitting(smooth, raw, points, labels, flat, transform, planes, step) -> np.ndarray:
-    """``smooth`` with the cells whose points lie on their ``raw`` label's plane but
-    more than ``step`` off the plane the filter gave them set back to ``raw``.
+def _keep_fitting(smooth, raw, points, flat, planes, step) -> np.ndarray:
+    """``smooth`` with the cells set back to their ``raw`` label where most of the
+    cell's points lie on the raw label's plane (within ``step`` / 2) and most lie more
+    than ``step`` off the plane the clean-up gave the cell.
 
-    ``points`` (n, 3) carry plane ``labels`` (n,) and fall in the cells ``flat`` (n,)
+    ``points`` (n, 3), the roof points on a plane, fall in the cells ``flat`` (n,)
     (row * width + col) of the grids.
     """
-    changed = (smooth != raw) & (raw >= 0) & (smooth >= 0)
-    if not changed.any():
+    changed = ((smooth != raw) & (raw >= 0) & (smooth >= 0)).ravel()
+    moved = changed[flat]
+    if not moved.any():
         return smooth
-    own = labels == raw.ravel()[flat]  # the points that voted for the raw label
-    count = np.bincount(flat[own], minlength=raw.size)
-    zsum = np.bincount(flat[own], weights=points[own, 2], minlength=raw.size)
-    rows, cols = np.nonzero(changed & (count.reshape(raw.shape) > 0))
-    if not len(rows):
-        return smooth
-    x = transform.c + (cols + 0.5) * transform.a
-    y = transform.f + (rows + 0.5) * transform.e
-    z = zsum.reshape(raw.shape)[rows, cols] / count.reshape(raw.shape)[rows, cols]
+    cell = flat[moved]
+    x, y, z = points[moved].T
     coef = np.asarray(planes)
-    off_raw = np.abs(_height(coef[raw[rows, cols]].T, x, y) - z)
-    off_new = np.abs(_height(coef[smooth[rows, cols]].T, x, y) - z)
-    back = (off_new > step) & (off_raw < 0.5 * step)
-    out = smooth.copy()
-    out[rows[back], cols[back]] = raw[rows[back], cols[back]]
-    return out
+    on_raw = np.abs(_height(coef[raw.ravel()[cell]].T, x, y) - z) < 0.5 * step
+    off_new = np.abs(_height(coef[smooth.ravel()[cell]].T, x, y) - z) > step
+    count = np.bincount(cell, minlength=raw.size)
+    back = (2 * np.bincount(cell, weights=on_raw, minlength=raw.size) > count) & (
+        2 * np.bincount(cell, weights=off_new, minlength=raw.size) > count
+    )
+    out = smooth.copy().ravel()
+    out[back] = raw.ravel()[back]
+    return out.reshape(smooth.shape)
 
 
 def _unpinch(grid: np.ndarray, inside: np.ndarray) -> np.ndarray:
