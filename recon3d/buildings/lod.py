@@ -1061,17 +1061,14 @@ def _necks(rings: list[np.ndarray], tol: float) -> np.ndarray:
     starts = np.concatenate(rings)
     ends = np.concatenate([np.roll(r, -1, axis=0) for r in rings])
     ring_of = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
-    index = np.concatenate([np.arange(len(r)) for r in rings])
-    d = ends - starts
-    length2 = np.maximum(np.einsum("ij,ij->i", d, d), 1e-24)
-    rel = starts[:, None, :] - starts[None, :, :]  # vertex k against edge e
-    t = np.clip(np.einsum("kei,ei->ke", rel, d) / length2, 0.0, 1.0)
-    gap = np.linalg.norm(rel - t[..., None] * d[None], axis=2)
-    same = ring_of[:, None] == ring_of[None, :]
+    first = np.concatenate([[0], np.cumsum([len(r) for r in rings])[:-1]])[ring_of]
     size = np.array([len(r) for r in rings])[ring_of]
-    incident = same & ((index[:, None] == index[None, :]) | (index[:, None] == (index[None, :] + 1) % size[None, :]))
-    hit = (gap < tol) & ~incident
-    return starts[np.flatnonzero(hit.any(axis=1))]
+    edges = shapely.linestrings(np.stack([starts, ends], axis=1))
+    vertex, edge = shapely.STRtree(edges).query(shapely.points(starts), predicate="dwithin", distance=tol)
+    # edge e runs from vertex e to the next vertex of its ring
+    following = first[edge] + (edge - first[edge] + 1) % size[edge]
+    incident = (vertex == edge) | (vertex == following)
+    return starts[np.unique(vertex[~incident])]
 
 
 def _open_crossings(regions, radius: float, tol: float):
