@@ -34,3 +34,22 @@ def test_run_reports_its_stages_and_the_buildings(tmp_path):
     assert stages == [(name, i, len(STAGES)) for i, (name, _) in enumerate(STAGES)]
     lod_index = [name for name, _ in STAGES].index("lod")
     assert [c for c in calls if c[0].startswith("lod ")] == [(f"lod {k}/4 buildings", lod_index, len(STAGES)) for k in range(1, 5)]
+
+
+def test_cgroup_quota_caps_the_workers(tmp_path):
+    """A container limited to 1.5 CPUs (cgroup v2 "150000 100000") gets 2 workers at
+    most, one without a quota ("max") as many as its affinity allows; v1 files too."""
+    from recon3d.pipeline.executor import cgroup_cpus
+
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert cgroup_cpus(tmp_path) == 1.5
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert cgroup_cpus(tmp_path) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert cgroup_cpus(v1) is None
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("400000\n")
+    assert cgroup_cpus(v1) == 4.0
+    assert cgroup_cpus(tmp_path / "missing") is None

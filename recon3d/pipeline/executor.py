@@ -11,21 +11,40 @@ which may hold OpenMP or TBB thread pools, can deadlock a child.
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 from typing import Any
 
-__all__ = ["default_workers", "map_ordered"]
+__all__ = ["cgroup_cpus", "default_workers", "map_ordered"]
 
 
 def default_workers() -> int:
-    """The CPUs this process may use (its affinity mask, not the machine's count)."""
+    """The CPUs this process may use: its affinity mask, capped by a container's CPU
+    quota (cgroup v2 ``cpu.max`` or v1 ``cpu.cfs_quota_us``), not the machine's count."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+        cpus = os.cpu_count() or 1
+    quota = cgroup_cpus()
+    return max(1, min(cpus, math.ceil(quota)) if quota else cpus)
+
+
+def cgroup_cpus(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """The CPU quota of this process's cgroup in CPUs, None when there is none."""
+    try:
+        v2 = root / "cpu.max"
+        if v2.exists():
+            quota, period = v2.read_text().split()[:2]
+            return None if quota == "max" else int(quota) / int(period)
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota / period if quota > 0 and period > 0 else None
+    except (OSError, ValueError):
+        return None
 
 
 def map_ordered(

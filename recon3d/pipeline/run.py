@@ -484,7 +484,7 @@ def build_solids(s: RunState) -> None:
     elif len(jobs) < _PARALLEL_FROM:
         workers, why = 1, f"fewer than {_PARALLEL_FROM} buildings: starting processes (about 1 s) costs more than it saves"
     else:
-        workers, why = default_workers(), "the CPUs this process may use"
+        workers, why = default_workers(), "the CPUs this process may use (affinity, container quota)"
     s.auto["workers"] = {"value": min(workers, max(len(jobs), 1)), "reason": why}
     done = None if s.progress is None else lambda k: s.progress(f"{k}/{len(jobs)} buildings")
     for b, res in zip(built, map_ordered(_build_lods, jobs, workers, done=done), strict=True):
