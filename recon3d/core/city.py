@@ -38,6 +38,7 @@ class Solid:
     vertices: np.ndarray
     surfaces: list[list[np.ndarray]]
     semantics: list[str]
+    _triangles: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -49,18 +50,19 @@ class Solid:
         """Triangulate every surface (earcut in the surface's own plane).
 
         Returns a mesh with ``metadata["semantics"]``, one surface type per triangle,
-        and ``metadata["surface_index"]`` giving each triangle's surface.
+        and ``metadata["surface_index"]`` giving each triangle's surface. A solid is
+        not changed once built, so the triangles are computed once (the model DSM,
+        the OBJ and the GLB all ask for them).
         """
-        faces, sem, index = [], [], []
-        for i, (rings, kind) in enumerate(zip(self.surfaces, self.semantics, strict=True)):
-            tris = triangulate_surface(self.vertices, rings)
-            faces.append(tris)
-            sem += [kind] * len(tris)
-            index += [i] * len(tris)
-        f = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
-        mesh = trimesh.Trimesh(self.vertices.copy(), f, process=False)
-        mesh.metadata["semantics"] = sem
-        mesh.metadata["surface_index"] = np.asarray(index, dtype=np.int64)
+        if self._triangles is None:
+            tris = [triangulate_surface(self.vertices, rings) for rings in self.surfaces]
+            faces = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+            index = np.repeat(np.arange(len(tris), dtype=np.int64), [len(t) for t in tris])
+            self._triangles = (faces, index)
+        faces, index = self._triangles
+        mesh = trimesh.Trimesh(self.vertices.copy(), faces.copy(), process=False)
+        mesh.metadata["semantics"] = [self.semantics[i] for i in index]
+        mesh.metadata["surface_index"] = index.copy()
         return mesh
 
 
