@@ -1,3 +1,4 @@
 from recon3d.cli import main
 
-main()
+if __name__ == "__main__":
+    main()

@@ -53,3 +53,19 @@ def test_cgroup_quota_caps_the_workers(tmp_path):
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("400000\n")
     assert cgroup_cpus(v1) == 4.0
     assert cgroup_cpus(tmp_path / "missing") is None
+
+
+def test_cli_with_worker_processes(tmp_path):
+    """``python -m recon3d run --workers 2`` in its own process, the way users call it:
+    the forkserver workers start, build the solids and the run records them."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import IGN, shared
+
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "recon3d", "-q", "run", str(shared(IGN)), "-o", str(out), "--workers", "2"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads((out / "run.json").read_text())["chosen"]["workers"]["value"] == 2

@@ -65,7 +65,7 @@ class RunState:
     truth_dsm_path: Path | None = None
     old_buildings_path: Path | None = None
     gcps_path: Path | None = None
-    workers: int | None = None  # processes building solids; None: chosen by build_solids
+    workers: int | None = 1  # processes building solids; None: chosen by build_solids
     progress: Callable[[str], None] | None = None  # reports progress within the running stage
     gcps: Any = None
     old_buildings: list | None = None
@@ -113,7 +113,7 @@ def run(
     gcps: str | Path | None = None,
     config: PipelineConfig | None = None,
     overwrite: bool = False,
-    workers: int | None = None,
+    workers: int | None = 1,
     progress: ProgressCallback | None = None,
 ) -> RunState:
     """Run the point-cloud pipeline and write the output folder.
@@ -143,10 +143,12 @@ def run(
     config : PipelineConfig, optional
     overwrite : bool
         Replace an existing, non-empty ``out_dir``.
-    workers : int, optional
-        Processes building the solids, one building at a time each; by default every
-        CPU this process may use from 32 buildings on, else one. The output does not
-        depend on it.
+    workers : int or None
+        Processes building the solids, one building at a time each; None uses every
+        CPU this process may use from 32 buildings on (the CLI's default). The output
+        does not depend on it. With more than one, the worker processes import the
+        calling script again, as ``multiprocessing`` does: its top-level code must sit
+        under ``if __name__ == "__main__":``.
     progress : callable, optional
         Called as ``progress(stage_name, index, total)`` before each stage, and with
         ``stage_name`` followed by a count (``"lod 40/133"``) during long stages.
@@ -480,7 +482,7 @@ def build_solids(s: RunState) -> None:
         jobs.append((poly, pts, b.ground_z, b.roof_z, s.city.frame, s.config.lod, u))
         built.append(b)
     if s.workers:
-        workers, why = s.workers, "--workers"
+        workers, why = s.workers, "given (--workers, or run(workers=))"
     elif len(jobs) < _PARALLEL_FROM:
         workers, why = 1, f"fewer than {_PARALLEL_FROM} buildings: starting processes (about 1 s) costs more than it saves"
     else:
