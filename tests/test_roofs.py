@@ -426,6 +426,27 @@ def test_roof_part_with_a_neck_snapping_would_close():
     assert check_solid(solid) == []
 
 
+def test_invalid_lod22_is_retried_without_small_parts(monkeypatch):
+    """A LoD2.2 shell that fails the mesh check is built once more with the parts under
+    a 2 x 2 block of grid cells merged, before falling back to LoD1.3 (on a 4 x 4
+    tiling of the Delft strip this saved the last of 133 buildings)."""
+    calls = []
+    original = lod._roofed
+
+    def failing_first(*args, coarse=False, **kwargs):
+        calls.append(coarse)
+        if kwargs.get("intersect") and not coarse:
+            raise lod._LodFailure("invalid_mesh", "304 simulated")
+        return original(*args, coarse=coarse, **kwargs)
+
+    monkeypatch.setattr(lod, "_roofed", failing_first)
+    fun, fp = ROOFS["hip"]
+    pts, fpw, frame = _synthetic(fun, fp)
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    assert calls[:2] == [False, True]
+    assert result.status == "ok" and "2.2" in result.solids and result.roof_type == "hip"
+
+
 def test_determinism_and_order_independence():
     fun, fp = ROOFS["hip"]
     pts, fpw, frame = _synthetic(fun, fp)

@@ -323,7 +323,15 @@ def _lod22(grid, fp, seg, roof_pts, g, u, cfg) -> tuple[Solid, float]:
     if seg.coverage < 0.5:
         raise _LodFailure("low_coverage", f"{seg.coverage:.0%} of the roof points on a plane")
     planes = [p.plane for p in seg.planes]
-    solid, parts = _roofed(grid, fp, planes, g, u, intersect=True)
+    try:
+        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True)
+    except _LodFailure as exc:
+        if exc.reason != "invalid_mesh":
+            raise
+        # slivers and specks of roof parts are what usually breaks the shell: once more
+        # without them, before falling back to LoD1.3
+        log.debug("LoD2.2 retried without small parts: %s", exc)
+        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True, coarse=True)
     rms = _partition_rms(parts, planes, roof_pts, u.height(1.0))
     if not rms <= u.height(getattr(cfg, "max_roof_rms", 0.5)):
         raise _LodFailure("poor_fit", f"roof RMS {rms:.2f}")
@@ -757,12 +765,15 @@ def _absorb_small(parts, min_area, min_width=0.0):
     return big
 
 
-def _roofed(grid: _Grid, fp, planes: list[np.ndarray], g: float, u, *, intersect: bool):
+def _roofed(grid: _Grid, fp, planes: list[np.ndarray], g: float, u, *, intersect: bool, coarse: bool = False):
     """The validated solid of the raster regions (LoD2.2: re-cut along plane intersections)
-    and the regions, (polygon, plane index) pairs, it was built from."""
+    and the regions, (polygon, plane index) pairs, it was built from. ``coarse`` also
+    merges parts smaller than a 2 x 2 block of grid cells or thinner than 10 cm."""
     regions = _regions(grid, fp)
     if intersect and len(regions) > 1:
         regions = _arrangement(regions, planes, fp, grid, u)
+    if coarse:
+        regions = _absorb_small(regions, (2.0 * grid.cell) ** 2, u.length(0.1))
     regions = _absorb_small(regions, (0.5 * grid.cell) ** 2, u.length(0.02))
     regions = _open_pinches(regions, u.length(0.05), u.length(0.004))
     regions = _open_crossings(regions, u.length(0.05), u.length(0.004))
