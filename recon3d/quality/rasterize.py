@@ -44,7 +44,15 @@ def roof_cover(city: CityModel, grid: Raster, *, lod: str | None = None, samples
 
 
 def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> tuple[Raster, np.ndarray]:
-    """:func:`model_dsm` and :func:`roof_cover` from one casting of the rays."""
+    """:func:`model_dsm` and :func:`roof_cover` from one casting of the rays.
+
+    Returns
+    -------
+    model : Raster
+        (rows, cols) float32 model DSM on the DTM's grid.
+    cover : (rows, cols) float
+        Share of each cell's rays that hit a building solid.
+    """
     highest, cover = _lattice(city, dtm, lod, samples)
     out = dtm.data.astype(np.float64).copy()
     hit = np.isfinite(highest)
