@@ -7,7 +7,7 @@ know that. This script runs `recon3d run` on a LiDAR file and compares, on the
 report's building cells (``model_check_cells``):
 
 1. the report's number: model_dsm.tif minus dsm.tif;
-2. like for like: the model scanned at the cloud's own points (``surface_at``),
+2. like for like: the model scanned at the cloud's own points (``model_scan``),
    gridded the way the DSM is, minus dsm.tif (the model's error alone);
 3. the floor of a perfect model: model_dsm.tif minus that scan of the model, i.e.
    what the report would say if the model were exactly the scanned city;
@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from recon3d.core.geo import parse_crs
-from recon3d.pipeline.run import model_check_cells, run
-from recon3d.quality.rasterize import roof_cover, surface_at
+from recon3d.pipeline.run import model_check_cells, model_scan, run
+from recon3d.quality.rasterize import surface_at
 from recon3d.terrain.dsm import grid_points, surface_points
 
 DELFT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lidar" / "delft_ahn3_strip.laz"
@@ -47,47 +47,39 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         s = run(args.laz, Path(tmp) / "out", crs=parse_crs(crs) if crs else None)
     cells = model_check_cells(s)
-    inside = cells & (roof_cover(s.city, s.dsm) >= 1.0)
-    xyz = s.cloud.xyz[surface_points(s.cloud)]
-    grid = s.dsm
-
-    def scan(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        z = surface_at(s.city, x, y, s.dtm)
-        return grid_points(np.column_stack([x, y, z]), grid.transform, grid.shape, reducer="max")
-
-    measured = grid_points(xyz, grid.transform, grid.shape, reducer="max")
-    scanned = scan(xyz[:, 0], xyz[:, 1])
+    inside = cells & (s.roof_cover >= 1.0)
+    scanned = model_scan(s).data
     rows = {
         "report: model DSM - DSM": s.model_dsm.data - s.dsm.data,
-        "like for like: model scan - DSM": scanned - measured,
+        "like for like: model scan - DSM": scanned - s.dsm.data,
         "perfect model: model DSM - model scan": s.model_dsm.data - scanned,
+        "irreducible: spread of random scans": _random_scans(s, args.draws),
     }
-    spread = _random_scans(scan, xyz, grid, args.draws)
     print(f"{args.laz.name}: {int(cells.sum())} building cells, {int(inside.sum())} wholly under roofs")
     print(f"{'':42s}{'all':>8s}{'inside roofs':>14s}{'others':>9s}   (RMS, m)")
     for name, diff in rows.items():
         print(f"{name:42s}" + "".join(f"{_rms(diff, m):{w}.3f}" for m, w in ((cells, 8), (inside, 14), (cells & ~inside, 9))))
-    print(f"{'irreducible: spread of random scans':42s}" + "".join(
-        f"{_rms(spread, m):{w}.3f}" for m, w in ((cells, 8), (inside, 14), (cells & ~inside, 9))))
 
 
-def _random_scans(scan, xyz: np.ndarray, grid, draws: int) -> np.ndarray:
+def _random_scans(s, draws: int) -> np.ndarray:
     """(rows, cols) standard deviation of the highest point per cell over ``draws``
     scans of the model, each keeping every cell's number of points but placing them
     uniformly at random inside it."""
+    grid = s.dsm
+    xyz = s.cloud.xyz[surface_points(s.cloud)]
     row, col = grid.rowcol(xyz[:, 0], xyz[:, 1])
     rows, cols = grid.shape
     ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
     count = np.bincount(row[ok] * cols + col[ok], minlength=rows * cols)
-    cell = np.repeat(np.arange(rows * cols), count)
-    r, c = np.divmod(cell, cols)
+    r, c = np.divmod(np.repeat(np.arange(rows * cols), count), cols)
     rng = np.random.default_rng(0)
     t = grid.transform
     tops = []
     for _ in range(draws):
         x = t.c + (c + rng.random(len(c))) * t.a
         y = t.f + (r + rng.random(len(r))) * t.e
-        tops.append(scan(x, y))
+        z = surface_at(s.city, x, y, s.dtm)
+        tops.append(grid_points(np.column_stack([x, y, z]), t, grid.shape, reducer="max"))
     return np.std(tops, axis=0, ddof=1)
 
 

@@ -10,7 +10,7 @@ from recon3d.buildings.lod import lod1_solid
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame
 from recon3d.core.raster import Raster
-from recon3d.quality.rasterize import model_dsm, roof_cover, surface_at
+from recon3d.quality.rasterize import model_dsm, render, surface_at
 
 
 def _box_on_flat_terrain():
@@ -42,7 +42,7 @@ def test_roof_cover_is_the_share_of_each_cell_under_the_roof():
     """Cells wholly inside the box are 1, cells off it 0, and the cells its walls cross
     the share of the 3 x 3 rays that land on the roof."""
     city, dtm, footprint = _box_on_flat_terrain()
-    cover = roof_cover(city, dtm)
+    cover = render(city, dtm)[1]
     x, y = dtm.cell_centers()
     area = np.array([[shapely.box(cx - 0.5, cy - 0.5, cx + 0.5, cy + 0.5).intersection(footprint).area for cx in x] for cy in y])
     assert np.array_equal(cover == 1.0, area == 1.0)

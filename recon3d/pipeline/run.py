@@ -44,7 +44,7 @@ from recon3d.terrain import ground as ground_stage
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunState", "model_check_cells", "run"]
+__all__ = ["RunState", "model_check_cells", "model_scan", "run"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -565,7 +565,7 @@ def evaluate_products(s: RunState) -> None:
         )
     # where a cell's points fell decides its height beside walls and on steep roofs;
     # the model scanned at the same points and gridded alike has no such error
-    scan = _model_scan(s).data - s.dsm.data
+    scan = model_scan(s).data - s.dsm.data
     tables.append(
         AccuracyReport.from_errors(
             scan[on_buildings & np.isfinite(scan)], product="model scanned at the points",
@@ -585,7 +585,7 @@ def evaluate_products(s: RunState) -> None:
     }
 
 
-def _model_scan(s: RunState) -> Raster:
+def model_scan(s: RunState) -> Raster:
     """The DSM a scan of the city model at the cloud's own points would give: each
     point's height replaced by the model's surface above it (the terrain beside the
     buildings), gridded like the measured DSM, without hole filling."""

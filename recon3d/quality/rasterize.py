@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "render", "roof_cover", "surface_at"]
+__all__ = ["model_dsm", "render", "surface_at"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -36,22 +36,16 @@ def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: 
     return render(city, dtm, lod=lod, samples=samples)[0]
 
 
-def roof_cover(city: CityModel, grid: Raster, *, lod: str | None = None, samples: int = 3) -> np.ndarray:
-    """(rows, cols) float: the share of each cell's ``samples`` x ``samples`` vertical
-    rays that hit a building solid (1 wholly on roofs, 0 off the buildings; in
-    between, a cell that a wall crosses)."""
-    return _lattice(city, grid, lod, samples)[1]
-
-
 def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> tuple[Raster, np.ndarray]:
-    """:func:`model_dsm` and :func:`roof_cover` from one casting of the rays.
+    """:func:`model_dsm` and, from the same rays, how much of each cell the roofs cover.
 
     Returns
     -------
     model : Raster
         (rows, cols) float32 model DSM on the DTM's grid.
     cover : (rows, cols) float
-        Share of each cell's rays that hit a building solid.
+        Share of each cell's ``samples`` x ``samples`` rays that hit a building solid:
+        1 wholly on roofs, 0 off the buildings, in between a cell that a wall crosses.
     """
     highest, cover = _lattice(city, dtm, lod, samples)
     out = dtm.data.astype(np.float64).copy()
