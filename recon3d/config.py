@@ -42,6 +42,9 @@ class StereoConfig:
     ----------
     max_disparities : int
         Widest disparity search per pair; the range itself comes from the sparse points.
+    engine : str
+        Dense matching engine: "census" (census cost and recon3d's SGM, the most
+        accurate) or "sgbm" (OpenCV's StereoSGBM, faster).
     min_angle : float
         Smallest ray intersection angle (degrees) for a triangulated point.
     max_parallax : float
@@ -52,12 +55,17 @@ class StereoConfig:
         800 px tiles beyond.
     """
 
-    max_disparities: int = 256
+    max_disparities: int = 384
+    engine: str = "census"
     min_angle: float = 1.0
     max_parallax: float = 1.0
     tile_size: int | None = None
 
     def __post_init__(self) -> None:
+        if self.engine not in ("census", "sgbm"):
+            raise InputError(f"stereo.engine {self.engine!r}: \"census\" or \"sgbm\"")
+        if self.max_disparities < 16:
+            raise InputError(f"stereo.max_disparities {self.max_disparities}: at least 16")
         if self.tile_size is not None and self.tile_size < 128:
             raise InputError(f"stereo.tile_size {self.tile_size}: at least 128 px (or unset for automatic)")
 

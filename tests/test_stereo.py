@@ -112,7 +112,7 @@ def test_pair_without_base(scene, tmp_path):
 
     s = read_scene(scene)
     same = [s.cameras[0], s.cameras[0]]
-    with pytest.raises(InputError, match="no image pair overlaps with a usable base-to-height ratio"):
+    with pytest.raises(InputError, match="no image pair sees the same ground with a usable base-to-height ratio"):
         select_pairs(same, s.sparse)
 
 
@@ -126,7 +126,7 @@ def test_parallax_check_refuses_wrong_orientation(scene):
     a, b = s.cameras
     b.R = cv2.Rodrigues(np.array([0.01, 0.0, 0.0]))[0] @ b.R  # 0.6 degree error in the orientation
     with pytest.raises(InputError, match="vertical parallax"):
-        rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)))
+        rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)), s.sparse)
 
 
 def test_no_crs(scene, tmp_path):
@@ -226,15 +226,15 @@ def test_matcher_against_the_exact_disparity(scene):
 
     from recon3d.io.colmap import read_scene
     from recon3d.stereo.match import MatchParams, match
-    from recon3d.stereo.rectify import disparity_range, rectify_pair
+    from recon3d.stereo.rectify import rectify_pair
     from recon3d.stereo.triangulate import triangulate
-    from recon3d.synthetic.city import make_city, truth_disparity
+    from recon3d.synthetic.city import truth_disparity
+    from recon3d.synthetic.scene import scene_city
 
-    record = json.loads((scene / "truth" / "scene.json").read_text())
-    city = make_city(seed=record["seed"], size=record["size"])
+    city = scene_city(scene)
     s = read_scene(scene)
     a, b = s.cameras
-    pair = rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)))
+    pair = rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)), s.sparse)
     truth = truth_disparity(city, pair, s.offset)
     assert np.isfinite(truth[pair.valid_left]).mean() > 0.99
 
@@ -249,10 +249,10 @@ def test_matcher_against_the_exact_disparity(scene):
     top = local[:, 2].max() + 10.0 - city.raycaster().cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     assert np.percentile(np.abs(top - local[:, 2]), 90) < 0.01
 
-    dmin, dmax, _ = disparity_range(pair, s.sparse)
+    dmin, dmax = pair.disparity_range
     left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
     right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
-    found = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1), guide=pair.color).disparity
+    found = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax), guide=pair.color).disparity
     both = np.isfinite(found) & np.isfinite(truth) & pair.valid_left
     error = np.abs(found - truth)[both]
     assert both.sum() > 0.95 * pair.valid_left.sum()

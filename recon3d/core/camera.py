@@ -52,21 +52,8 @@ class Camera:
         """(3,) unit optical axis in world coordinates."""
         return self.R[2]
 
-    def rotated_clockwise(self) -> Camera:
-        """The same camera for its image turned 90 degrees clockwise (``cv2.ROTATE_90_CLOCKWISE``).
-
-        Pixel (u, v) moves to (height - 1 - v, u); the camera frame turns about its
-        optical axis, so the projection of every world point follows the pixels.
-        """
-        rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        K = np.array([[fy, 0.0, self.height - 1 - cy], [0.0, fx, cx], [0.0, 0.0, 1.0]])
-        k1, k2, p1, p2, k3 = self.dist
-        dist = np.array([k1, k2, p2, -p1, k3])
-        return Camera(self.name, K, dist, rz @ self.R, rz @ self.t, self.height, self.width, self.image_path)
-
-    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distortion-free projection of (n, 3) world points.
+    def project(self, xyz: np.ndarray, *, distort: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Projection of (n, 3) world points, without lens distortion unless ``distort``.
 
         Returns
         -------
@@ -77,6 +64,11 @@ class Camera:
         """
         cam = np.asarray(xyz, dtype=np.float64) @ self.R.T + self.t
         depth = cam[:, 2]
+        if distort and np.any(self.dist):
+            import cv2
+
+            uv, _ = cv2.projectPoints(cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, self.dist)
+            return uv.reshape(-1, 2), depth
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (cam @ self.K.T)[:, :2] / depth[:, None]
         return uv, depth

@@ -38,6 +38,8 @@ class StereoScene:
         One per registered image, poses in model coordinates.
     sparse : (n, 3) float
         Sparse 3-D points of the model (model coordinates).
+    seen : (len(cameras), n) bool
+        Which images observe each sparse point (its COLMAP track).
     offset : (3,) float
         World = model + offset.
     crs : pyproj.CRS
@@ -46,6 +48,7 @@ class StereoScene:
 
     cameras: list[Camera]
     sparse: np.ndarray
+    seen: np.ndarray
     offset: np.ndarray
     crs: pyproj.CRS
     folder: Path
@@ -76,12 +79,27 @@ def read_scene(folder: str | Path, *, crs: pyproj.CRS | None = None) -> StereoSc
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as exc:
         raise InputError(f"{sparse}: cannot read the COLMAP model ({exc})") from None
-    cameras = [_camera(rec, image, folder / "images") for image in _registered(rec)]
+    images = _registered(rec)
+    cameras = [_camera(rec, image, folder / "images") for image in images]
     if len(cameras) < 2:
         raise InputError(f"{sparse}: the model has {len(cameras)} registered image(s); stereo needs two")
-    points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    points, seen = _sparse_points(rec, [im.image_id for im in images])
     offset, scene_crs = _georef(folder, crs)
-    return StereoScene(cameras, points, offset, scene_crs, folder)
+    return StereoScene(cameras, points, seen, offset, scene_crs, folder)
+
+
+def _sparse_points(rec, image_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) sparse points and (len(image_ids), n) bool of the images in their tracks."""
+    index = {image_id: k for k, image_id in enumerate(image_ids)}
+    ids = sorted(rec.points3D)
+    xyz = np.array([rec.points3D[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    seen = np.zeros((len(image_ids), len(ids)), bool)
+    for n, i in enumerate(ids):
+        for element in rec.points3D[i].track.elements:
+            k = index.get(element.image_id)
+            if k is not None:
+                seen[k, n] = True
+    return xyz, seen
 
 
 def _model_dir(sparse: Path) -> Path:
@@ -160,4 +178,12 @@ def _georef(folder: Path, crs: pyproj.CRS | None) -> tuple[np.ndarray, pyproj.CR
             raise InputError(f"{path}: expected {{\"crs\": \"EPSG:N\", \"offset\": [x0, y0, z0]}} ({exc})") from None
     if file_crs is None and crs is None:
         raise CRSError(f"{folder}: no CRS (write georef.json or give --crs)")
-    return offset, crs or file_crs
+    chosen = crs or file_crs
+    horizontal = chosen.sub_crs_list[0] if chosen.is_compound else chosen
+    if horizontal.is_geographic:
+        source = "--crs" if crs is not None else str(path)
+        raise CRSError(
+            f"{source}: CRS {horizontal.name} is in degrees; the model's coordinates (world = model + offset) "
+            "need a projected CRS in metres or feet, such as the scene's UTM zone"
+        )
+    return offset, chosen

@@ -80,6 +80,7 @@ class RunState:
     reference_classes: np.ndarray | None = None
     dsm: Raster | None = None
     dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
+    common_area: np.ndarray | None = None  # frame stereo: DSM cells two matched images both see
     reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
     dtm: Raster | None = None
@@ -95,8 +96,14 @@ class RunState:
     labels: np.ndarray | None = None
     auto: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     report: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+
+    def warn(self, message: str) -> None:
+        """A warning the user must see: logged (the terminal), kept for run.json and the report."""
+        log.warning("%s", message)
+        self.warnings.append(message)
 
 
 def run(
@@ -256,7 +263,7 @@ def match_stereo(s: RunState) -> None:
     else:
         from recon3d.pipeline.stereo import dense_cloud
 
-        s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo)
+        s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo, warn=s.warn, progress=s.progress)
     _read_side_inputs(s)
 
 
@@ -304,7 +311,7 @@ def _read_side_inputs(s: RunState) -> None:
     s.work_dir.mkdir(parents=True, exist_ok=True)
 
 
-def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int) -> Raster:
+def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int, area=None) -> Raster:
     """The DSM of ``cloud`` (the run's cloud, or one with the same points and other
     heights) gridded the way this run grids its DSM."""
     stereo = s.scene is not None  # frame or satellite stereo
@@ -312,7 +319,7 @@ def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int
     observed = a["observed"] > 0 if stereo and "observed" in a else None
     return dsm_stage.make_dsm(
         cloud, res, max_hole_cells=max_hole_cells, rim="low" if stereo else "mean",
-        observed=observed, source=a.get("point_source_id") if observed is not None else None,
+        observed=observed, source=a.get("point_source_id") if observed is not None else None, area=area,
     )
 
 
@@ -337,7 +344,14 @@ def make_dsm(s: RunState) -> None:
         ("stereo: ground hidden behind buildings, filled from the low side of its rim" if stereo
          else "LiDAR: gaps between scan lines, filled from the mean of their rim"),
     }
-    s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2))
+    frame_stereo = s.scene is not None and s.satellite_paths is None
+
+    def common_area(raw: Raster) -> np.ndarray:
+        s.common_area = _common_area(s, raw)
+        return s.common_area
+
+    s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2),
+                      area=common_area if frame_stereo else None)
     gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
     s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
@@ -345,6 +359,83 @@ def make_dsm(s: RunState) -> None:
     if observed is not None and not observed.all():
         count = dsm_stage.grid_points(s.cloud.xyz[observed > 0], s.dsm.transform, s.dsm.shape, reducer="count")
         s.dsm_unobserved = (count == 0) & np.isfinite(s.dsm.data)
+    if frame_stereo:
+        _check_common_area(s)
+
+
+#: Least share (percent) of the area two images both see that a frame-stereo DSM must
+#: fill without a warning.
+MIN_COMMON_FILLED = 95.0
+
+
+#: Pixels along the image borders left out of the common area: their matches are the
+#: least sure, and a hole there is better left empty than filled from the wrong side.
+COMMON_AREA_MARGIN_PX = 2.0
+
+
+def _common_area(s: RunState, dsm: Raster) -> np.ndarray:
+    """Frame stereo: (rows, cols) bool, the cells both images of a matched pair see.
+
+    A cell is in the common area when its centre lies inside both images of a pair that
+    was matched, :data:`COMMON_AREA_MARGIN_PX` or more from their borders, both at its
+    own height and at the height of the highest surface within 10 m (so a roof cut by
+    the image border is not taken for ground in view); without a height, the median.
+    """
+    from scipy import ndimage
+
+    cameras = {c.name: c for c in s.scene.cameras}
+    xs, ys = dsm.cell_centers()
+    x, y = np.meshgrid(xs, ys)
+    finite = np.isfinite(dsm.data)
+    median = float(np.nanmedian(dsm.data)) if finite.any() else 0.0
+    own = np.where(finite, dsm.data, median)
+    size = 2 * int(np.ceil(s.units.length(10.0) / dsm.resolution)) + 1
+    high = ndimage.maximum_filter(np.where(finite, dsm.data, -np.inf), size=size)
+    high = np.where(np.isfinite(high), np.maximum(high, own), own)
+    offset = np.asarray(s.scene.offset)
+    points = [np.column_stack([x.ravel(), y.ravel(), z.ravel()]) - offset for z in (own, high)]
+
+    def in_frame(cam, margin: float = COMMON_AREA_MARGIN_PX):
+        inside = np.ones(len(points[0]), bool)
+        lo, hi = margin - 0.5, np.array([cam.width, cam.height]) - 0.5 - margin
+        for local in points:
+            uv, depth = cam.project(local)
+            inside &= (depth > 0) & (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1)
+        return inside
+
+    frames = {name: in_frame(cam) for name, cam in cameras.items()}
+    common = np.zeros(len(points[0]), bool)
+    for record in s.auto["stereo"]["pairs"]:
+        a, b = record["images"]
+        common |= frames[a] & frames[b]
+    return common.reshape(dsm.shape)
+
+
+def _check_common_area(s: RunState) -> None:
+    """Frame stereo: how much of the common area the DSM fills; a warning below
+    :data:`MIN_COMMON_FILLED` percent, naming where the empty cells are."""
+    common = s.common_area
+    xs, ys = s.dsm.cell_centers()
+    x, y = np.meshgrid(xs, ys)
+    filled = np.isfinite(s.dsm.data) & common
+    observed = filled & ~s.dsm_filled & (~s.dsm_unobserved if s.dsm_unobserved is not None else True)
+    n = max(1, int(common.sum()))
+    area = {
+        "cells": int(common.sum()),
+        "area_m2": round(float(common.sum() * (s.dsm.resolution * s.units.horizontal) ** 2), 1),
+        "filled_percent": round(100.0 * float(filled.sum()) / n, 2),
+        "observed_percent": round(100.0 * float(observed.sum()) / n, 2),
+    }
+    s.auto["stereo"]["common_area"] = area
+    if area["filled_percent"] < MIN_COMMON_FILLED:
+        rows, cols = np.nonzero(common & ~filled)
+        xs, ys = x[rows, cols], y[rows, cols]
+        s.auto["stereo"]["common_area"]["empty_extent"] = [float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())]
+        s.warn(
+            f"the DSM fills {area['filled_percent']:.0f} % of the {area['area_m2']:.0f} m2 that the matched "
+            f"image pairs both see (expected >= {MIN_COMMON_FILLED:.0f} %); {len(rows)} cells are empty, "
+            f"within x {xs.min():.0f}..{xs.max():.0f}, y {ys.min():.0f}..{ys.max():.0f}"
+        )
 
 
 def classify_ground(s: RunState) -> None:
@@ -655,6 +746,7 @@ def write_products(s: RunState) -> None:
         vectors.write_features(w / "changes.geojson", geoms, props, s.city.crs)
         write_raster(change.change_raster(s.changes, s.dsm), w / "changes.tif")
         write_cityjson(change.updated_model(s.old_buildings, s.city, s.changes), w / "buildings_updated.city.json")
+    s.report["warnings"] = s.warnings
     _write_json(w / "report.json", s.report)
 
 
@@ -760,6 +852,7 @@ def _run_record(s: RunState) -> dict:
         "chosen": s.auto,
         "local_frame_origin": list(s.city.frame.origin),
         "notes": s.notes,
+        "warnings": s.warnings,
         "versions": {m.__name__: getattr(m, "__version__", "?") for m in (np, scipy, laspy, rasterio, shapely, trimesh)},
         "timings_s": s.timings,
     }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -11,8 +12,9 @@ from recon3d.config import StereoConfig
 from recon3d.core.pointcloud import PointCloud
 from recon3d.errors import InputError
 from recon3d.io.colmap import StereoScene
+from recon3d.stereo.check import check_pair, verdict
 from recon3d.stereo.fuse import fuse
-from recon3d.stereo.rectify import disparity_range, rectify_pair, select_pairs
+from recon3d.stereo.rectify import RectifiedPair, rectify_pair, select_pairs
 from recon3d.stereo.triangulate import triangulate
 
 log = logging.getLogger(__name__)
@@ -20,54 +22,126 @@ log = logging.getLogger(__name__)
 __all__ = ["dense_cloud"]
 
 
-def dense_cloud(scene: StereoScene, config: StereoConfig) -> tuple[PointCloud, dict]:
-    """Match every usable pair of the scene and fuse the results.
+def dense_cloud(
+    scene: StereoScene,
+    config: StereoConfig,
+    *,
+    bounds: Callable[[RectifiedPair], tuple[np.ndarray, np.ndarray, np.ndarray | None]] | None = None,
+    warn: Callable[[str], None] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[PointCloud, dict]:
+    """Match every usable pair of the scene, check each against the sparse points, fuse.
+
+    Parameters
+    ----------
+    scene : StereoScene
+    config : StereoConfig
+    bounds : callable, optional
+        ``bounds(pair)`` -> per-pixel disparity bounds (low, high) and an optional
+        weight map for the matcher (vector-constrained matching), or None.
+    warn : callable, optional
+        Receives the warnings of the self-check (default: logged).
+    progress : callable, optional
+        Receives "pair k/n" as each pair starts.
 
     Returns
     -------
     cloud : PointCloud
         World coordinates (model + offset), the scene's CRS; colours and ``quality``.
     report : dict
-        Pairs considered, rectification residuals, disparity ranges, point counts.
-    """
-    from recon3d.stereo.match import MatchParams, match, photo_consistency
+        Pairs considered, rectification residuals, disparity ranges, the self-check per
+        pair, point counts and each pair's share of the fused cloud.
 
-    pairs, candidates = select_pairs(scene.cameras, scene.sparse)
+    Raises
+    ------
+    InputError
+        No usable pair, or a pair whose dense result contradicts the sparse points.
+    """
+    warn = warn or log.warning
+    pairs, candidates = select_pairs(scene.cameras, scene.sparse, scene.seen)
     report = {"candidates": candidates, "pairs": []}
     clouds = []
-    for i, j in pairs:
-        a, b = scene.cameras[i], scene.cameras[j]
-        pair = rectify_pair(a, b, _read(a.image_path), _read(b.image_path), max_parallax=config.max_parallax)
-        dmin, dmax, why = disparity_range(pair, scene.sparse, max_count=config.max_disparities)
-        # black borders outside the photos are nodata, not texture to match
-        left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
-        right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
-        result = match(left, right, MatchParams(min_disparity=dmin, max_disparity=dmax + 1), guide=pair.color)
-        # a filled-in disparity the images agree with is as good as a match (steep or
-        # shadowed roof faces); one they contradict is a guess (a hidden courtyard)
-        guessed = result.filled & ~(photo_consistency(left, right, result.disparity) >= 0.4)
-        cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle, guessed=guessed)
-        source = len(clouds) + 1  # the pair's id in cloud.laz
+    for k, (i, j) in enumerate(pairs):
+        if progress:
+            progress(f"pair {k + 1}/{len(pairs)}")
+        common = scene.seen[i] & scene.seen[j]
+        cloud, record = _match_pair(scene, i, j, scene.sparse[common], config, bounds, warn)
+        source = len(report["pairs"]) + 1  # the pair's id in cloud.laz
         cloud.attributes["point_source_id"] = np.full(len(cloud), source, np.uint16)
-        report["pairs"].append({
-            "pair": pair.name,
-            "point_source_id": source,
-            "vertical_parallax_px": pair.parallax,
-            "disparity_range": {"value": [dmin, dmax], "reason": why},
-            "matched_percent": result.params.get("matched_percent"),
-            "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[pair.valid_left]))), 1),
-            "points": len(cloud),
-        })
+        report["pairs"].append({"point_source_id": source, **record})
         clouds.append(cloud)
-    clouds = [c for c in clouds if len(c)]
-    if not clouds:
+    if not any(len(c) for c in clouds):
         raise InputError(f"{scene.folder}: dense matching produced no point")
     gsd = _ground_sample_distance(scene)
-    cloud = fuse(clouds, cell=gsd, rough=_foliage)
+    cloud = fuse([c for c in clouds if len(c)], cell=gsd, rough=_foliage)
+    kept = np.bincount(cloud.attributes["point_source_id"], minlength=len(clouds) + 1)
+    for record in report["pairs"]:
+        n = int(kept[record["point_source_id"]])
+        record["points_fused"] = n
+        record["fused_share_percent"] = round(100.0 * n / max(1, len(cloud)), 2)
     cloud = PointCloud(cloud.xyz + scene.offset, cloud.attributes, scene.crs)
+    report["pair_count"] = len(pairs)
     report["ground_sample_distance"] = round(gsd, 4)
     report["points"] = len(cloud)
     return cloud, report
+
+
+def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, dict]:
+    """Rectify, match, triangulate and self-check one pair."""
+    from recon3d.stereo.match import MatchParams, match, photo_consistency
+
+    a, b = scene.cameras[i], scene.cameras[j]
+    pair = rectify_pair(
+        a, b, _read(a.image_path), _read(b.image_path), points,
+        max_parallax=config.max_parallax, max_disparities=config.max_disparities,
+    )
+    dmin, dmax = pair.disparity_range
+    # black borders outside the photos are nodata, not texture to match
+    left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
+    right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
+    low = high = weight = None
+    if bounds is not None:
+        low, high, weight = bounds(pair)
+    params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine)
+    result = match(left, right, params, guide=pair.color, low=low, high=high, weight=weight)
+    # a filled-in disparity the images agree with is as good as a match (steep or
+    # shadowed roof faces); one they contradict is a guess (a hidden courtyard)
+    guessed = result.filled & ~(photo_consistency(left, right, result.disparity) >= 0.4)
+    cloud = triangulate(pair, result.disparity, result.confidence, min_angle_deg=config.min_angle, guessed=guessed)
+    check = check_pair(pair, result.disparity, ~result.filled & np.isfinite(result.disparity), points)
+    message = verdict(pair.name, check, offset=scene.offset)
+    if message:
+        warn(message)
+    overlap = _overlap(pair)
+    matched = np.isfinite(result.unfilled) & overlap
+    record = {
+        "pair": pair.name,
+        "images": [pair.camera_left.name, pair.camera_right.name],
+        "rectified_size": list(pair.left.shape[::-1]),
+        "disparity_offset_px": round(pair.offset, 1),
+        "vertical_parallax_px": pair.parallax,
+        "disparity_range": {"value": [dmin, dmax], "reason": pair.range_reason},
+        "matched_percent": round(100.0 * float(matched.sum()) / max(1, int(overlap.sum())), 2),
+        "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[overlap]))), 1) if overlap.any() else 0.0,
+        "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine") if k in result.params},
+        "self_check": {k: v for k, v in check.items() if k != "uncovered"},
+        "points": len(cloud),
+    }
+    if bounds is not None:
+        record["constrained_percent"] = round(100.0 * float(np.mean(np.isfinite(low[overlap]))), 2) if low is not None else 0.0
+    return cloud, record
+
+
+def _overlap(pair: RectifiedPair) -> np.ndarray:
+    """(H, W) bool: left pixels whose match at the middle of the searched range lies in the right image."""
+    mid = int(round(sum(pair.disparity_range) / 2))
+    shifted = np.zeros_like(pair.valid_right)
+    w = shifted.shape[1]
+    if mid >= 0:
+        shifted[:, mid:] = pair.valid_right[:, : w - mid]
+    else:
+        shifted[:, : w + mid] = pair.valid_right[:, -mid:]
+    return pair.valid_left & shifted
 
 
 def _foliage(cloud: PointCloud) -> np.ndarray | None:
@@ -87,7 +161,10 @@ def _read(path) -> np.ndarray:
 
 def _ground_sample_distance(scene: StereoScene) -> float:
     """Median pixel footprint on the ground: depth of the sparse points over the focal length."""
-    cam = scene.cameras[0]
-    _, depth = cam.project(scene.sparse)
-    depth = depth[depth > 0]
-    return float(np.median(depth) / cam.K[0, 0]) if depth.size else 1.0
+    gsd = []
+    for k, cam in enumerate(scene.cameras):
+        _, depth = cam.project(scene.sparse[scene.seen[k]])
+        depth = depth[depth > 0]
+        if depth.size:
+            gsd.append(np.median(depth) / cam.K[0, 0])
+    return float(np.median(gsd)) if gsd else 1.0

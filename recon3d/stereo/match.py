@@ -326,7 +326,14 @@ class DisparityResult:
 
 
 def match(
-    left: np.ndarray, right: np.ndarray, params: MatchParams = MatchParams(), *, guide: np.ndarray | None = None
+    left: np.ndarray,
+    right: np.ndarray,
+    params: MatchParams = MatchParams(),
+    *,
+    guide: np.ndarray | None = None,
+    low: np.ndarray | None = None,
+    high: np.ndarray | None = None,
+    weight: np.ndarray | None = None,
 ) -> DisparityResult:
     """Dense disparity map of a rectified pair by semi-global matching.
 
@@ -342,6 +349,16 @@ def match(
     guide : (H, W, 3) or (H, W) array, optional
         Image whose edges the edge-aware median aligns disparity steps with (colour
         separates roofs from ground better than grey); default ``left``.
+    low, high : (H, W) float, optional
+        Per-pixel disparity bounds (NaN: unbounded), e.g. from a coarse DEM or 3-D
+        vectors. Disparities outside them cost more to the census engine (by ``weight``);
+        the sgbm engine, and the final map, drop disparities outside the bounds of
+        pixels whose weight is 1.
+    weight : (H, W) float in [0, 1], optional
+        How firmly the bounds hold at each pixel: 1 (the default) forbids disparities
+        outside them, smaller values only penalise them (by ``weight`` times the
+        largest matching cost), for bounds that may be wrong by a little, such as roof
+        heights of a building database.
 
     Returns
     -------
@@ -371,6 +388,7 @@ def match(
     info.update(p1=p1, p2=p2)
     timings: dict[str, float] = {}
 
+    bounds = _bounds(low, high, weight, (h, w))
     t = time.perf_counter()
     lo, hi, reason = _narrow_range(gl, gr, dmin, dmax, params)
     timings["pyramid"] = time.perf_counter() - t
@@ -378,11 +396,13 @@ def match(
 
     t = time.perf_counter()
     if params.engine == "census":
-        disp, disp_right, cost_conf, nstrips = _census_engine(gl, gr, lo, hi, params)
+        disp, disp_right, cost_conf, nstrips = _census_engine(gl, gr, lo, hi, params, bounds)
         info["strips"] = nstrips
     else:
         disp, disp_right = _sgbm_engine(gl, gr, lo, hi, params, right=params.lr_check)
         cost_conf = None
+    if bounds is not None:
+        disp[_outside_hard(disp, bounds)] = np.nan
     timings["matching"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -422,6 +442,9 @@ def match(
     if nodata_l is not None:
         full[nodata_l] = np.nan
         filled &= ~nodata_l
+    if bounds is not None:  # filling must not leave the bounds either
+        lo_b, hi_b, hard, _ = bounds
+        full = np.where(hard, np.clip(full, lo_b, hi_b), full).astype(np.float32)
     if params.fill_gaps:
         disparity = full
         confidence[filled] = params.fill_confidence
@@ -503,6 +526,28 @@ def _as_gray(img, name: str) -> np.ndarray:
 
 def _to_uint8(g: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(g), 0, 255).astype(np.uint8)
+
+
+def _bounds(low, high, weight, shape):
+    """(low, high, hard, weight): bounds (float32, infinite where none), the pixels where
+    they hold firmly (bool) and the weights (float32); None without bounds."""
+    if low is None and high is None:
+        return None
+    lo = np.full(shape, -np.inf, np.float32) if low is None else np.asarray(low, np.float32)
+    hi = np.full(shape, np.inf, np.float32) if high is None else np.asarray(high, np.float32)
+    if lo.shape != shape or hi.shape != shape:
+        raise InputError(f"disparity bounds of shape {lo.shape} / {hi.shape} for images of shape {shape}")
+    lo = np.where(np.isfinite(lo), lo, -np.inf).astype(np.float32)
+    hi = np.where(np.isfinite(hi), hi, np.inf).astype(np.float32)
+    wt = np.ones(shape, np.float32) if weight is None else np.clip(np.nan_to_num(np.asarray(weight, np.float32)), 0, 1)
+    hard = (wt >= 1.0) & (np.isfinite(lo) | np.isfinite(hi))
+    return lo, hi, hard, wt
+
+
+def _outside_hard(disp: np.ndarray, bounds) -> np.ndarray:
+    lo, hi, hard, _ = bounds
+    with np.errstate(invalid="ignore"):
+        return hard & ((disp < lo - 0.5) | (disp > hi + 0.5))
 
 
 # ----------------------------------------------------------------------------- pyramid
@@ -620,7 +665,7 @@ def _sgbm_once(a, b, dmin: int, ndisp: int, p1: int, p2: int, params: MatchParam
 # ----------------------------------------------------------------------------- census engine
 
 
-def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams):
+def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=None):
     """Left disparity (subpixel, NaN where not unique), right disparity, cost confidence."""
     h, w = gl.shape
     ndisp = dmax - dmin
@@ -648,7 +693,7 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams):
 
     def work(strip):
         r0, r1, a, b = strip
-        return _census_strip(pl, pr, gl, gr, a, b, r0 - a, r1 - a, dmin, dmax, params, workspace)
+        return _census_strip(pl, pr, gl, gr, a, b, r0 - a, r1 - a, dmin, dmax, params, workspace, bounds)
 
     if params.workers > 1 and len(strips) > 1:
         with ThreadPoolExecutor(params.workers) as pool:
@@ -693,7 +738,7 @@ class _Workspace(threading.local):
         return buf[:nbytes].view(dtype).reshape(shape)
 
 
-def _census_strip(pl, pr, gl, gr, a, b, c0, c1, dmin, dmax, params: MatchParams, workspace):
+def _census_strip(pl, pr, gl, gr, a, b, c0, c1, dmin, dmax, params: MatchParams, workspace, bounds=None):
     """Match rows a..b; return rows c0..c1 of that strip (left, right disparity, confidence)."""
     wy, wx = params.census_window
     cost = workspace.array("cost", (b - a, dmax - dmin, gl.shape[1]), np.uint8)
@@ -701,6 +746,8 @@ def _census_strip(pl, pr, gl, gr, a, b, c0, c1, dmin, dmax, params: MatchParams,
         _census(pl, a, b, wy, wx), _census(pr, a, b, wy, wx), gl[a:b], gr[a:b], dmin, dmax,
         params.intensity_weight, params.intensity_truncation, wy * wx - 1, cost,
     )
+    if bounds is not None:
+        _penalise_outside(cost, dmin, *(x[a:b] for x in bounds))
     p1, p2 = params.resolved_penalties()
     p2_min = max(params.p2_min, p1 + 1)
     total = _sgm(cost, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, workspace)
@@ -756,6 +803,25 @@ def _cost_volume(cl, cr, il, ir, dmin, dmax, weight, trunc, nbits, out) -> np.nd
             cv2.add(plane, below, dst=plane)
         out[:, i, :] = plane
     return out
+
+
+def _penalise_outside(cost, dmin: int, lo, hi, hard, weight) -> None:
+    """Raise, in place, the cost of disparities outside the per-pixel bounds.
+
+    ``cost`` is (rows, D, cols) uint8, plane i disparity ``dmin + i``; the increase is
+    ``weight`` times 255 (saturating: weight 1 makes a disparity as costly as can be).
+    """
+    ndisp = cost.shape[1]
+    first = np.clip(np.ceil(lo - 0.5) - dmin, 0, ndisp).astype(np.int32)
+    last = np.clip(np.floor(hi + 0.5) - dmin, -1, ndisp - 1).astype(np.int32)
+    penalty = np.rint(weight * 255).astype(np.uint8)
+    if not penalty.any():
+        return
+    plane = np.empty(penalty.shape, np.uint8)
+    for i in range(ndisp):
+        outside = (i < first) | (i > last)
+        np.multiply(penalty, outside, out=plane, casting="unsafe")
+        cost[:, i, :] = cv2.add(cost[:, i, :], plane)  # saturating
 
 
 def _sgm(cost, guide, p1, p2, p2_min, gscale, paths, workspace) -> np.ndarray:

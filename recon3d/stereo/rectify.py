@@ -1,33 +1,63 @@
-"""Choosing stereo pairs and rectifying them to epipolar geometry (OpenCV).
+"""Choosing stereo pairs and rectifying them to epipolar geometry.
 
 After rectification corresponding points share an image row: the left-image disparity
-d = x_left - x_right is all that remains to find. The residual vertical parallax of
-SIFT matches measures how well that holds; a pair above 1 px is refused.
+d = x_left - x_right is all that remains to find.
+
+The rectification is computed here rather than by ``cv2.stereoRectify``, whose
+``alpha`` crops either the common area (``alpha=0`` keeps only pixels valid in both
+views, losing a side of a 55 % overlap) or nothing, and which puts the principal points
+where the disparity search must first cross hundreds of pixels of constant offset.
+Here (Fusiello, Trucco and Verri 2000):
+
+1. both views turn to one orientation: x along the baseline (from the left camera to
+   the right one), z the mean of the two optical axes made orthogonal to it, so any
+   heading, base direction (along the image rows, the columns or diagonal) and attitude
+   works without special cases;
+2. the common focal length is the mean of the cameras' (no resolution lost);
+3. the rectified images are cut to the part of the left view whose match can lie in
+   the right view for the scene's depths (the sparse points' disparities, widened), and
+   the right view is shifted by the median disparity of those points, so the searched
+   disparities are centred on 0 and span the scene's depth range only.
+
+Every sparse point seen by both images therefore lands in both rectified images. The
+residual vertical parallax of SIFT matches measures how well the orientation fits the
+images; a pair above 1 px is refused.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import math
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+import shapely
+import shapely.affinity
 
 from recon3d.core.camera import Camera
 from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RectifiedPair", "disparity_range", "rectify_pair", "select_pairs"]
+__all__ = ["MAX_PARALLAX_PX", "RectifiedPair", "measure_parallax", "rectify_pair", "select_pairs"]
 
 #: Largest residual vertical parallax (median, pixels) accepted after rectification.
 MAX_PARALLAX_PX = 1.0
+
+#: Share of the sparse disparity spread, and pixels, added on both sides of the range.
+RANGE_MARGIN = (0.15, 8.0)
 
 
 @dataclass
 class RectifiedPair:
     """Two images resampled so that epipolar lines are image rows.
+
+    Both rectified views share one orientation ``rotation`` and focal length; their
+    principal points differ along x by ``offset``, the disparity of a point at
+    infinity. A left pixel (x, y) of disparity d sees the point at depth
+    ``focal * baseline / (d - offset)`` along the rectified z axis.
 
     Attributes
     ----------
@@ -38,12 +68,17 @@ class RectifiedPair:
     valid_left, valid_right : (H, W) bool
         Pixels that fall inside the original images.
     camera_left, camera_right : Camera
-    R1 : (3, 3) float
-        Rotation from the left camera frame to the rectified frame.
-    P1, P2 : (3, 4) float
-        Projection matrices of the rectified views (rectified frame of the left camera).
-    Q : (4, 4) float
-        Disparity-to-depth matrix (``cv2.reprojectImageTo3D``).
+    rotation : (3, 3) float
+        World (model) to rectified frame, shared by both views.
+    focal : float
+        Focal length of both rectified views (pixels).
+    cx_left, cx_right, cy : float
+        Principal points of the rectified views (OpenCV pixel convention).
+    baseline : float
+        Distance between the projection centres (model units).
+    disparity_range : (int, int)
+        Disparities ``lo <= d < hi`` the scene's depths can give (sparse points, widened).
+    range_reason : str
     parallax : dict
         Residual vertical parallax of feature matches: median, p90, count (pixels).
     """
@@ -55,38 +90,128 @@ class RectifiedPair:
     valid_right: np.ndarray
     camera_left: Camera
     camera_right: Camera
-    R1: np.ndarray
-    P1: np.ndarray
-    P2: np.ndarray
-    Q: np.ndarray
+    rotation: np.ndarray
+    focal: float
+    cx_left: float
+    cx_right: float
+    cy: float
+    baseline: float
+    disparity_range: tuple[int, int] = (0, 1)
+    range_reason: str = ""
     parallax: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
         return f"{self.camera_left.name}-{self.camera_right.name}"
 
+    @property
+    def offset(self) -> float:
+        """Disparity of a point at infinity, ``cx_left - cx_right`` (pixels)."""
+        return self.cx_left - self.cx_right
+
+    @property
+    def R1(self) -> np.ndarray:
+        """(3, 3) left camera frame to rectified frame (OpenCV's ``R1``)."""
+        return self.rotation @ self.camera_left.R.T
+
+    @property
+    def R2(self) -> np.ndarray:
+        """(3, 3) right camera frame to rectified frame (OpenCV's ``R2``)."""
+        return self.rotation @ self.camera_right.R.T
+
+    @property
+    def P1(self) -> np.ndarray:
+        """(3, 4) projection of the rectified left view, rectified frame of the left camera."""
+        return np.array([[self.focal, 0, self.cx_left, 0], [0, self.focal, self.cy, 0], [0, 0, 1, 0]], float)
+
+    @property
+    def P2(self) -> np.ndarray:
+        """(3, 4) projection of the rectified right view, rectified frame of the left camera."""
+        fb = self.focal * self.baseline
+        return np.array([[self.focal, 0, self.cx_right, -fb], [0, self.focal, self.cy, 0], [0, 0, 1, 0]], float)
+
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rectified left and right pixel coordinates, (n, 2) each, of (n, 3) model points."""
-        cam = np.asarray(xyz) @ self.camera_left.R.T + self.camera_left.t
-        rect = np.column_stack([cam @ self.R1.T, np.ones(len(cam))])
-        uvl = rect @ self.P1.T
-        uvr = rect @ self.P2.T
+        p = (np.asarray(xyz, np.float64) - self.camera_left.center) @ self.rotation.T
         with np.errstate(divide="ignore", invalid="ignore"):
-            return uvl[:, :2] / uvl[:, 2:], uvr[:, :2] / uvr[:, 2:]
+            y = self.focal * p[:, 1] / p[:, 2] + self.cy
+            xl = self.focal * p[:, 0] / p[:, 2] + self.cx_left
+            xr = self.focal * (p[:, 0] - self.baseline) / p[:, 2] + self.cx_right
+        return np.column_stack([xl, y]), np.column_stack([xr, y])
+
+    def triangulate(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """(n, 3) model points of left pixels (x, y) with disparities d, (n,) each.
+
+        Rows are shared, so the two rays meet exactly; disparities at or below
+        ``offset`` (at or beyond infinity) give NaN.
+        """
+        x, y, d = (np.asarray(v, np.float64) for v in (x, y, d))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(d > self.offset, self.focal * self.baseline / (d - self.offset), np.nan)
+        rect = np.column_stack([(x - self.cx_left) * z / self.focal, (y - self.cy) * z / self.focal, z])
+        return rect @ self.rotation + self.camera_left.center
+
+    def depth_to_disparity(self, depth: np.ndarray) -> np.ndarray:
+        """Disparity of points at rectified depths ``depth`` (any shape)."""
+        return self.focal * self.baseline / np.asarray(depth, np.float64) + self.offset
+
+    def to_rectified(self, uv: np.ndarray, *, right: bool = False) -> np.ndarray:
+        """(n, 2) rectified pixel coordinates of (n, 2) pixels of the original (distorted) image.
+
+        The inverse of :meth:`to_original` (``cv2.undistortPoints``).
+        """
+        cam = self.camera_right if right else self.camera_left
+        cx = self.cx_right if right else self.cx_left
+        P = np.array([[self.focal, 0, cx], [0, self.focal, self.cy], [0, 0, 1]], float)
+        uv = np.asarray(uv, np.float64).reshape(-1, 1, 2)
+        return cv2.undistortPoints(uv, cam.K, cam.dist, R=self.R2 if right else self.R1, P=P).reshape(-1, 2)
+
+    def to_original(self, xy: np.ndarray, *, right: bool = False) -> np.ndarray:
+        """(n, 2) pixel coordinates in the original (distorted) image of rectified pixels (n, 2).
+
+        The same mapping the images were resampled with (``cv2.initUndistortRectifyMap``),
+        computed point by point.
+        """
+        cam = self.camera_right if right else self.camera_left
+        cx = self.cx_right if right else self.cx_left
+        xy = np.asarray(xy, np.float64)
+        rays = np.column_stack([(xy[:, 0] - cx) / self.focal, (xy[:, 1] - self.cy) / self.focal, np.ones(len(xy))])
+        in_camera = rays @ (self.R2 if right else self.R1)  # rectified to camera frame
+        uv, _ = cv2.projectPoints(in_camera.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)
+        return uv.reshape(-1, 2)
+
+
+# --------------------------------------------------------------------------- pairs
 
 
 def select_pairs(
-    cameras: list[Camera], sparse: np.ndarray, *, min_ratio: float = 0.08, max_ratio: float = 2.0, min_overlap: float = 0.2
+    cameras: list[Camera],
+    sparse: np.ndarray,
+    seen: np.ndarray | None = None,
+    *,
+    min_ratio: float = 0.08,
+    max_ratio: float = 2.0,
+    min_overlap: float = 0.2,
+    min_points: int = 10,
 ) -> tuple[list[tuple[int, int]], list[dict]]:
     """Image pairs with enough common ground and a usable base-to-height ratio.
 
-    The overlap is the share of sparse points seen by one image that the other sees
-    too; the height is the median depth of those points.
+    The overlap is the share of the sparse points one image observes that the other
+    observes too (their COLMAP tracks; without tracks, the points inside both frames);
+    the height is the median depth of those points.
+
+    Parameters
+    ----------
+    cameras : list of Camera
+    sparse : (n, 3) float
+        Sparse points, model coordinates.
+    seen : (len(cameras), n) bool, optional
+        Which cameras observe each point.
 
     Returns
     -------
     pairs : list of (i, j)
-        Indices into ``cameras``, left-to-right order fixed later by rectification.
+        Indices into ``cameras``.
     report : list of dict
         Every candidate pair with its ratio, overlap and verdict (for run.json).
 
@@ -95,24 +220,37 @@ def select_pairs(
     InputError
         When no pair qualifies; the message lists the candidates.
     """
-    visible = [_inside(c, sparse) for c in cameras]
+    visible = seen if seen is not None else np.stack([_inside(c, sparse) for c in cameras])
     pairs, report = [], []
     for i, j in itertools.combinations(range(len(cameras)), 2):
         a, b = cameras[i], cameras[j]
         both = visible[i] & visible[j]
         overlap = both.sum() / max(1, min(visible[i].sum(), visible[j].sum()))
-        depth = np.median(a.project(sparse[both])[1]) if both.any() else np.nan
-        ratio = float(np.linalg.norm(a.center - b.center) / depth) if both.any() else 0.0
-        ok = overlap >= min_overlap and min_ratio <= ratio <= max_ratio
-        report.append({"pair": f"{a.name}-{b.name}", "base_to_height": round(ratio, 3),
-                       "overlap": round(float(overlap), 3), "used": bool(ok)})
-        if ok:
+        depth = float(np.median(a.project(sparse[both])[1])) if both.any() else np.nan
+        base = b.center - a.center
+        ratio = float(np.linalg.norm(base) / depth) if both.any() else 0.0
+        axis = a.viewing_direction + b.viewing_direction
+        along_view = abs(float(base @ axis)) / max(1e-12, float(np.linalg.norm(base) * np.linalg.norm(axis)))
+        why = ""
+        if both.sum() < min_points:
+            why = f"{int(both.sum())} common sparse points"
+        elif overlap < min_overlap:
+            why = f"overlap {overlap:.0%}"
+        elif not min_ratio <= ratio <= max_ratio:
+            why = f"base-to-height {ratio:.2f}"
+        elif along_view > 0.7:
+            why = "base along the viewing direction"
+        report.append({
+            "pair": f"{a.name}-{b.name}", "base_to_height": round(ratio, 3), "overlap": round(float(overlap), 3),
+            "common_points": int(both.sum()), "used": not why, **({"refused": why} if why else {}),
+        })
+        if not why:
             pairs.append((i, j))
     if not pairs:
-        lines = "; ".join(f"{r['pair']}: overlap {r['overlap']:.0%}, B/H {r['base_to_height']:.2f}" for r in report)
+        lines = "; ".join(f"{r['pair']}: {r.get('refused', '')}" for r in report)
         raise InputError(
-            f"no image pair overlaps with a usable base-to-height ratio ({min_ratio}-{max_ratio}, "
-            f"overlap >= {min_overlap:.0%}): {lines}"
+            f"no image pair sees the same ground with a usable base-to-height ratio ({min_ratio}-{max_ratio}, "
+            f"overlap >= {min_overlap:.0%}, at least {min_points} common sparse points): {lines}"
         )
     return pairs, report
 
@@ -122,61 +260,144 @@ def _inside(camera: Camera, xyz: np.ndarray) -> np.ndarray:
     return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
 
 
+# --------------------------------------------------------------------------- rectification
+
+
 def rectify_pair(
-    a: Camera, b: Camera, image_a: np.ndarray, image_b: np.ndarray, *, max_parallax: float = MAX_PARALLAX_PX
+    a: Camera,
+    b: Camera,
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    points: np.ndarray,
+    *,
+    max_parallax: float = MAX_PARALLAX_PX,
+    max_disparities: int = 384,
 ) -> RectifiedPair:
-    """Undistort and rectify two images from their known relative pose.
+    """Undistort and rectify two images from their known orientation.
 
-    The camera that ends up on the left (its matches shifted towards smaller x in the
-    other image) comes first in the result whatever the input order.
+    ``a`` is the left view: its rectified x axis points from ``a``'s projection centre
+    to ``b``'s, so disparities are positive whatever the base direction.
 
-    A baseline along the image columns (forward overlap) is handled by turning both
-    images and cameras 90 degrees first; the result's cameras are the turned ones.
+    Parameters
+    ----------
+    a, b : Camera
+    image_a, image_b : (h, w, 3) or (h, w) uint8
+        The images as read (BGR or grey).
+    points : (n, 3) float
+        Model points both images see (the sparse points of both tracks): they bound
+        the scene's depths and so the searched disparities and the rectified extent.
+    max_parallax : float
+        Largest median residual vertical parallax of SIFT matches (pixels).
+    max_disparities : int
+        Widest disparity range; a wider one is cut around the points' median.
 
     Raises
     ------
     InputError
-        A residual vertical parallax above ``max_parallax``.
+        Fewer than 3 points, no common ground in front of both cameras, or a residual
+        vertical parallax above ``max_parallax``.
     """
-    R, T = _relative_pose(a, b)
-    if abs(T[1]) > abs(T[0]):  # baseline along the columns (forward overlap): turn both views
-        rot = cv2.ROTATE_90_CLOCKWISE
-        return rectify_pair(
-            a.rotated_clockwise(), b.rotated_clockwise(), cv2.rotate(image_a, rot), cv2.rotate(image_b, rot),
-            max_parallax=max_parallax,
-        )
-    if T[0] > 0:  # b lies to the left of a: swap so that disparities are positive
-        return rectify_pair(b, a, image_b, image_a, max_parallax=max_parallax)
-    size = (a.width, a.height)
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
-        a.K, a.dist.reshape(1, 5), b.K, b.dist.reshape(1, 5), size, R, T.reshape(3, 1),
-        flags=0, alpha=0,  # principal points may differ: convergent views keep their overlap
+    name = f"images {a.name} and {b.name}"
+    rotation, baseline = _common_orientation(a, b)
+    focal = float(np.mean([a.K[0, 0], a.K[1, 1], b.K[0, 0], b.K[1, 1]]))
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    depth = (points - a.center) @ rotation[2]
+    points = points[depth > 0]
+    if len(points) < 3:
+        raise InputError(f"{name}: fewer than 3 sparse points seen by both; cannot bound the disparities")
+    raw = focal * baseline / ((points - a.center) @ rotation[2])  # disparity with principal points at 0
+    lo, hi, reason = _widened_range(raw, max_disparities, name)
+    left_area = _rectified_outline(a, rotation, focal)
+    right_area = _rectified_outline(b, rotation, focal)
+    reach = shapely.convex_hull(shapely.union(
+        shapely.affinity.translate(right_area, lo), shapely.affinity.translate(right_area, hi)
+    ))
+    common = left_area.intersection(reach)
+    if common.is_empty or common.area < 1.0:
+        raise InputError(f"{name}: the two images do not see the same ground (no common area for the sparse points' depths)")
+    u0, v0, u1, v1 = common.bounds
+    shift = int(round(float(np.median(raw))))
+    pad_lo, pad_hi = math.ceil(hi - shift), math.ceil(shift - lo)
+    left0 = math.floor(u0) - pad_lo
+    width = math.ceil(u1) - math.floor(u0) + pad_lo + pad_hi + 1
+    height = math.ceil(v1) - math.floor(v0) + 1
+    cx_left, cy = float(-left0), float(-math.floor(v0))
+    cx_right = cx_left + shift
+    size = (width, height)
+    left, color, valid_left = _remap(image_a, a, rotation, focal, cx_left, cy, size)
+    right, _, valid_right = _remap(image_b, b, rotation, focal, cx_right, cy, size)
+    d_lo, d_hi = math.floor(lo - shift), math.ceil(hi - shift) + 1
+    pair = RectifiedPair(
+        left, right, color, valid_left, valid_right, a, b, rotation, focal, cx_left, cx_right, cy, baseline,
+        (d_lo, d_hi), reason,
     )
-    left, color, valid_left = _remap(image_a, a, R1, P1, size)
-    right, _, valid_right = _remap(image_b, b, R2, P2, size)
-    pair = RectifiedPair(left, right, color, valid_left, valid_right, a, b, R1, P1, P2, Q)
     pair.parallax = measure_parallax(left, right)
+    log.info(
+        "%s rectified to %d x %d px (originals %d x %d, %d x %d); disparities [%d, %d), shift %d px",
+        name, width, height, a.width, a.height, b.width, b.height, d_lo, d_hi, shift,
+    )
     if pair.parallax["n"] >= 20 and pair.parallax["median"] > max_parallax:
         raise InputError(
-            f"images {a.name} and {b.name}: residual vertical parallax {pair.parallax['median']:.2f} px "
+            f"{name}: residual vertical parallax {pair.parallax['median']:.2f} px "
             f"after rectification exceeds {max_parallax} px; the orientations do not fit the images"
         )
     return pair
 
 
-def _relative_pose(a: Camera, b: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation and translation of camera b relative to camera a (x_b = R x_a + T)."""
-    R = b.R @ a.R.T
-    return R, b.t - R @ a.t
+def _common_orientation(a: Camera, b: Camera) -> tuple[np.ndarray, float]:
+    """World-to-rectified rotation (rows x, y, z) and the baseline length."""
+    x = b.center - a.center
+    baseline = float(np.linalg.norm(x))
+    if baseline <= 0:
+        raise InputError(f"images {a.name} and {b.name} share their projection centre: no stereo base")
+    x /= baseline
+    z = a.viewing_direction + b.viewing_direction
+    z = z - (z @ x) * x
+    if np.linalg.norm(z) < 1e-6:
+        raise InputError(f"images {a.name} and {b.name}: the base lies along the viewing direction")
+    z /= np.linalg.norm(z)
+    return np.stack([x, np.cross(z, x), z]), baseline
 
 
-def _remap(image: np.ndarray, cam: Camera, Rr: np.ndarray, P: np.ndarray, size):
-    map1, map2 = cv2.initUndistortRectifyMap(cam.K, cam.dist, Rr, P, size, cv2.CV_32FC1)
+def _rectified_outline(cam: Camera, rotation: np.ndarray, focal: float, n: int = 32) -> shapely.Polygon:
+    """The image border in rectified coordinates with the principal point at (0, 0)."""
+    w, h = cam.width - 0.5, cam.height - 0.5
+    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    border = np.concatenate([
+        np.column_stack([-0.5 + t * (w + 0.5), np.full(n, -0.5)]),
+        np.column_stack([np.full(n, w), -0.5 + t * (h + 0.5)]),
+        np.column_stack([w - t * (w + 0.5), np.full(n, h)]),
+        np.column_stack([np.full(n, -0.5), h - t * (h + 0.5)]),
+    ])
+    P = np.array([[focal, 0, 0], [0, focal, 0], [0, 0, 1]], float)
+    uv = cv2.undistortPoints(border.reshape(-1, 1, 2), cam.K, cam.dist, R=rotation @ cam.R.T, P=P).reshape(-1, 2)
+    return shapely.Polygon(uv).buffer(0)
+
+
+def _widened_range(raw: np.ndarray, max_count: int, name: str) -> tuple[float, float, str]:
+    """Disparity range (raw, principal points at 0) from the points' disparities."""
+    lo, hi = (np.percentile(raw, [0.5, 99.5]) if len(raw) >= 50 else (raw.min(), raw.max()))
+    margin = RANGE_MARGIN[0] * (hi - lo) + RANGE_MARGIN[1]
+    reason = f"{len(raw)} sparse points: disparities spread {hi - lo:.1f} px, widened by {margin:.1f} px on each side"
+    lo, hi = lo - margin, hi + margin
+    if hi - lo > max_count:
+        mid = float(np.median(raw))
+        lo, hi = max(lo, mid - max_count / 2), min(hi, mid + max_count / 2)
+        reason += f"; capped at {max_count} disparities"
+        log.warning("%s: disparity range capped at %d (stereo.max_disparities)", name, max_count)
+    return float(lo), float(hi), reason
+
+
+def _remap(image: np.ndarray, cam: Camera, rotation, focal, cx, cy, size):
+    """Grey and RGB rectified image, and the mask of pixels inside the original."""
+    P = np.array([[focal, 0, cx], [0, focal, cy], [0, 0, 1]], float)
+    map1, map2 = cv2.initUndistortRectifyMap(cam.K, cam.dist, rotation @ cam.R.T, P, size, cv2.CV_32FC1)
     color = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     color = cv2.remap(color, map1, map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     gray = cv2.cvtColor(color, cv2.COLOR_BGR2GRAY)
-    ones = np.full(image.shape[:2], 255, np.uint8)
-    valid = cv2.remap(ones, map1, map2, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
+    h, w = image.shape[:2]
+    # every bilinear tap inside the photo: no black border blended into the edge pixels
+    valid = (map1 >= 0) & (map1 <= w - 1) & (map2 >= 0) & (map2 <= h - 1)
     return gray, cv2.cvtColor(color, cv2.COLOR_BGR2RGB), valid
 
 
@@ -207,36 +428,3 @@ def measure_parallax(left: np.ndarray, right: np.ndarray, *, max_features: int =
         "n": int(v.size),
         "rejected": int((~keep).sum()),
     }
-
-
-def disparity_range(pair: RectifiedPair, sparse: np.ndarray, *, max_count: int = 256) -> tuple[int, int, str]:
-    """Disparity search range from the sparse points seen in both rectified images.
-
-    The 1st to 99th percentile of their disparities, widened by 10 % and 8 px; at most
-    ``max_count`` disparities, so the cost volume stays bounded.
-
-    Returns
-    -------
-    min_disparity, max_disparity : int
-    reason : str
-    """
-    uvl, uvr = pair.project(sparse)
-    h, w = pair.left.shape
-    seen = (
-        np.isfinite(uvl).all(axis=1) & np.isfinite(uvr).all(axis=1)
-        & (uvl[:, 0] >= 0) & (uvl[:, 0] < w) & (uvl[:, 1] >= 0) & (uvl[:, 1] < h)
-        & (uvr[:, 0] >= 0) & (uvr[:, 0] < w)
-    )
-    if seen.sum() < 3:
-        raise InputError(f"images {pair.name}: fewer than 3 sparse points seen by both; cannot bound the disparities")
-    d = uvl[seen, 0] - uvr[seen, 0]
-    lo, hi = np.percentile(d, [1, 99])
-    margin = 0.1 * (hi - lo) + 8.0
-    dmin, dmax = int(np.floor(lo - margin)), int(np.ceil(hi + margin))
-    reason = f"{seen.sum()} sparse points: disparities {lo:.1f}..{hi:.1f} px, widened by {margin:.1f} px"
-    if dmax - dmin > max_count:
-        centre = (dmin + dmax) // 2
-        dmin, dmax = centre - max_count // 2, centre + max_count // 2
-        reason += f"; capped at {max_count} disparities"
-        log.warning("images %s: disparity range capped at %d", pair.name, max_count)
-    return dmin, dmax, reason

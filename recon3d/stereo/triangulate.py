@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from recon3d.core.pointcloud import PointCloud
@@ -44,10 +43,8 @@ def triangulate(
     inside = (xr >= 0) & (xr < pair.valid_right.shape[1])
     inside[inside] = pair.valid_right[rows[inside], xr[inside]]
     valid[rows[~inside], cols[~inside]] = False  # the match must land inside the right image
-    d = np.where(valid, disparity, 0).astype(np.float32)
-    rect = cv2.reprojectImageTo3D(d, pair.Q)[valid].astype(np.float64)
-    cam = rect @ pair.R1  # R1 maps camera to rectified frame: its transpose maps back
-    xyz = (cam - pair.camera_left.t) @ pair.camera_left.R
+    rows, cols = np.nonzero(valid)
+    xyz = pair.triangulate(cols, rows, disparity[rows, cols])
     ca, cb = pair.camera_left.center, pair.camera_right.center
     ra, rb = xyz - ca, xyz - cb
     cos = np.einsum("ij,ij->i", ra, rb) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))

@@ -1,8 +1,9 @@
 """Procedural test cities with exact ground truth.
 
-A :class:`SyntheticCity` is terrain with gentle relief, a grid of streets and lots,
-one building per lot (flat, shed, gable, hip and pyramid roofs on rectangles; flat L
-and T plans; one courtyard building) and trees (ellipsoid or cone crowns on trunks).
+A :class:`SyntheticCity` is terrain (gentle relief, flat, a 10 % slope or hills), a grid
+of streets and lots (regular, dense or sparse), one building per lot (flat, shed, gable,
+hip and pyramid roofs on rectangles; flat L and T plans; one courtyard building) and
+trees (ellipsoid or cone crowns on trunks) beside the buildings or over their roofs.
 Everything is a triangle mesh in a local metric frame (z up, float32-safe
 coordinates); ``city.origin`` is added to get world coordinates in ``city.crs``
 (UTM-sized by default, so consumers are tested against the float32 pitfall).
@@ -31,8 +32,12 @@ from recon3d.core.geo import LocalFrame
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "LAYOUTS",
     "MATERIALS",
+    "TERRAINS",
+    "TREES",
     "BuildingTruth",
+    "Layout",
     "StreetGrid",
     "SyntheticCity",
     "Terrain",
@@ -53,9 +58,31 @@ ROOF_TYPES = ("flat", "shed", "gable", "hip", "pyramid")
 #: How often each roof type is drawn once every type is present.
 _ROOF_WEIGHTS = (0.3, 0.1, 0.3, 0.2, 0.1)
 
-_STREET_WIDTH = 8.0
-_LOT_PITCH = 36.0
-_SETBACK = 2.0
+#: Terrain kinds of :func:`make_city`.
+TERRAINS = ("gentle", "flat", "slope", "hilly")
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How densely a city is built: street pitch and width, setback, share of lots built."""
+
+    pitch: float
+    street: float
+    setback: float
+    built: float
+
+
+#: Building layouts of :func:`make_city`: the regular grid, a dense one of narrow
+#: streets and small lots, and a sparse one where most lots stay open ground.
+LAYOUTS = {
+    "regular": Layout(pitch=36.0, street=8.0, setback=2.0, built=1.0),
+    "dense": Layout(pitch=25.0, street=6.0, setback=1.0, built=1.0),
+    "sparse": Layout(pitch=36.0, street=8.0, setback=2.0, built=0.4),
+}
+
+#: Tree placements of :func:`make_city`.
+TREES = ("none", "beside", "over")
+
 _TERRAIN_SPACING = 2.5
 _DEFAULT_ORIGIN = (500000.0, 5400000.0, 0.0)
 
@@ -123,19 +150,38 @@ class Terrain:
         return vertices, faces
 
 
-def _make_terrain(rng: np.random.Generator, size: float, margin: float) -> Terrain:
-    """Smooth random hills (a few metres) on a gentle slope, around 50 m above the datum."""
+def _make_terrain(rng: np.random.Generator, size: float, margin: float, kind: str = "gentle") -> Terrain:
+    """Terrain about 50 m above the datum at the city centre.
+
+    ``"gentle"``: smooth random hills of a few metres on a slope of about 1 %;
+    ``"flat"``: a level plane; ``"slope"``: a 10 % incline in a random direction with
+    hills of a metre; ``"hilly"``: hills and valleys of 6 to 15 m, about 100 m across.
+    """
+    if kind not in TERRAINS:
+        raise ValueError(f"terrain {kind!r} is not one of {TERRAINS}")
     n = int(math.ceil((size + 2 * margin) / _TERRAIN_SPACING)) + 1
     x0 = y0 = -margin
     coords = x0 + _TERRAIN_SPACING * np.arange(n)
     gx, gy = np.meshgrid(coords, coords)
-    slope = rng.uniform(-0.012, 0.012, size=2)
-    z = 50.0 + slope[0] * (gx - size / 2) + slope[1] * (gy - size / 2)
-    for _ in range(int(rng.integers(4, 7))):
+    z = np.full(gx.shape, 50.0)
+    if kind == "flat":
+        return Terrain(x0, y0, _TERRAIN_SPACING, z)
+    if kind == "slope":
+        angle = rng.uniform(0, 2 * math.pi)
+        slope, amp, count, scale = 0.10 * np.array([math.cos(angle), math.sin(angle)]), 1.0, (3, 5), (0.2, 0.4)
+    elif kind == "hilly":
+        slope, amp, count, scale = rng.uniform(-0.02, 0.02, size=2), 15.0, (6, 10), (0.08, 0.16)
+    else:
+        slope, amp, count, scale = rng.uniform(-0.012, 0.012, size=2), 3.0, (4, 7), (0.2, 0.45)
+    z += slope[0] * (gx - size / 2) + slope[1] * (gy - size / 2)
+    extent = max(size, 100.0) if kind != "hilly" else max(size, 600.0)
+    for _ in range(int(rng.integers(*count))):
         cx, cy = rng.uniform(-0.2 * size, 1.2 * size, size=2)
-        sigma = rng.uniform(0.2, 0.45) * max(size, 100.0)
-        amp = rng.uniform(-3.0, 3.0)
-        z += amp * np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * sigma**2))
+        sigma = rng.uniform(*scale) * extent
+        height = rng.uniform(-amp, amp) if kind != "hilly" else rng.choice([-1, 1]) * rng.uniform(6.0, amp)
+        z += height * np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * sigma**2))
+    if kind != "gentle":  # the same heights at the centre whatever the relief
+        z += 50.0 - float(Terrain(x0, y0, _TERRAIN_SPACING, z).height(np.array(size / 2), np.array(size / 2)))
     return Terrain(x0, y0, _TERRAIN_SPACING, z)
 
 
@@ -171,12 +217,12 @@ class StreetGrid:
         return shapely.box(x, y, x + s, y + s)
 
 
-def _street_grid(size: float) -> StreetGrid:
-    n = round((size - _STREET_WIDTH) / _LOT_PITCH)
-    pitch = (size - _STREET_WIDTH) / max(n, 1)
-    if n < 1 or pitch < 30.0:
-        raise ValueError(f"a city of {size} m has no room for one lot (at least 38 m)")
-    return StreetGrid(0.0, pitch, _STREET_WIDTH, n)
+def _street_grid(size: float, layout: Layout = LAYOUTS["regular"]) -> StreetGrid:
+    n = round((size - layout.street) / layout.pitch)
+    pitch = (size - layout.street) / max(n, 1)
+    if n < 1 or pitch < layout.pitch * 5 / 6:
+        raise ValueError(f"a city of {size} m has no room for one lot (at least {layout.pitch + layout.street:.0f} m)")
+    return StreetGrid(0.0, pitch, layout.street, n)
 
 
 # --------------------------------------------------------------------------- buildings
@@ -328,9 +374,11 @@ def _make_building(
     terrain: Terrain,
     frame: LocalFrame,
     rng: np.random.Generator,
+    setback: float = 2.0,
 ) -> BuildingTruth:
-    """One building inside ``lot`` (local), standing on the terrain."""
-    inner = lot.buffer(-_SETBACK, join_style="mitre")
+    """One building inside ``lot`` (local), standing on the terrain, at most 25 m high
+    above its lowest ground (less where the ground under it is steep)."""
+    inner = lot.buffer(-setback, join_style="mitre")
     room = min(inner.bounds[2] - inner.bounds[0], inner.bounds[3] - inner.bounds[1])
     center = np.array(lot.centroid.coords[0])
     for attempt in range(50):
@@ -344,7 +392,7 @@ def _make_building(
         raise RuntimeError(f"building {bid} does not fit its lot")
     zmin, zmax = _ground_range(terrain, poly)
     rise = _roof_rise(roof, a, b, rng)
-    eave_h = rng.uniform(4.5, 25.0 - rise - (zmax - zmin))
+    eave_h = rng.uniform(4.5, max(5.0, 25.0 - rise - (zmax - zmin)))
     zb, ze = zmin, zmax + eave_h
     zr = ze + rise
     world_poly = shapely.affinity.translate(poly, frame.origin[0], frame.origin[1])
@@ -450,8 +498,10 @@ def _make_trees(
 ) -> list[TreeTruth]:
     """Trees on free ground, clear of buildings (crown + 1.5 m) and of each other."""
     blocked = shapely.union_all(footprints) if footprints else shapely.Polygon()
+    shapely.prepare(blocked)
     target = int(size * size / 700)
     trees: list[TreeTruth] = []
+    placed = np.zeros((0, 3))  # x, y, crown radius of the trees so far
     for _ in range(target * 20):
         if len(trees) >= target:
             break
@@ -459,14 +509,60 @@ def _make_trees(
         r = rng.uniform(1.8, 4.0)
         if blocked.distance(shapely.Point(x, y)) < r + 1.5:
             continue
-        if any(math.hypot(x - t.x, y - t.y) < r + t.crown_radius for t in trees):
+        if np.any(np.hypot(placed[:, 0] - x, placed[:, 1] - y) < r + placed[:, 2]):
             continue
         g = float(terrain.height(np.array([x]), np.array([y]))[0])
         height = rng.uniform(max(5.0, 1.6 * r), 15.0)
         crown = "cone" if rng.random() < 0.3 else "ellipsoid"
         tid = f"t{len(trees) + 1}"
         trees.append(TreeTruth(tid, float(x), float(y), g + oz, g + height + oz, float(r), crown))
+        placed = np.vstack([placed, [x, y, r]])
     return trees
+
+
+def _overhanging_trees(
+    rng: np.random.Generator,
+    buildings: list[BuildingTruth],
+    terrain: Terrain,
+    trees: list[TreeTruth],
+    frame: LocalFrame,
+    share: float = 0.35,
+) -> list[TreeTruth]:
+    """Trees beside a wall of ``share`` of the buildings whose crowns reach over the roof.
+
+    The trunk stands 0.5 m or more outside the footprint; the crown (3 to 5.5 m radius)
+    tops the eaves by 1 to 4 m and covers about a third of its radius of the roof's edge.
+    """
+    footprints = [b.footprint_local for b in buildings]
+    blocked = shapely.union_all(footprints) if footprints else shapely.Polygon()
+    shapely.prepare(blocked)
+    placed = np.array([[t.x, t.y, t.crown_radius] for t in trees]).reshape(-1, 3)
+    ox, oy, oz = frame.origin
+    out = []
+    for b in buildings:
+        if rng.random() >= share:
+            continue
+        ring = b.footprint_local.exterior
+        r = rng.uniform(3.0, 5.5)
+        for _ in range(20):
+            p = ring.interpolate(rng.uniform(0, ring.length))
+            q = ring.interpolate(ring.project(p) + 0.1)
+            tangent = np.array([q.x - p.x, q.y - p.y])
+            if not np.any(tangent):
+                continue
+            normal = np.array([tangent[1], -tangent[0]]) / np.linalg.norm(tangent)  # outward for a CCW ring
+            x, y = np.array([p.x, p.y]) + normal * (0.5 + 0.65 * r)
+            if blocked.distance(shapely.Point(x, y)) < 0.5 or b.footprint_local.contains(shapely.Point(x, y)):
+                continue
+            if np.any(np.hypot(placed[:, 0] - x, placed[:, 1] - y) < 0.7 * (r + placed[:, 2])):
+                continue
+            g = float(terrain.height(np.array([x]), np.array([y]))[0])
+            top = min(b.eave_z - oz + rng.uniform(1.0, 4.0), g + 28.0)
+            tid = f"t{len(trees) + len(out) + 1}"
+            out.append(TreeTruth(tid, float(x), float(y), g + oz, top + oz, float(r), "ellipsoid"))
+            placed = np.vstack([placed, [x, y, r]])
+            break
+    return out
 
 
 # --------------------------------------------------------------------------- the city
@@ -499,6 +595,8 @@ class SyntheticCity:
         RGB albedo multiplier per triangle (per-building roof colour).
     face_owner : (m,) int32
         -1 for terrain, building index, or ``1000000 + tree index``.
+    params : dict
+        The arguments of :func:`make_city` that rebuild this city.
     """
 
     seed: int
@@ -514,6 +612,7 @@ class SyntheticCity:
     face_material: np.ndarray
     face_tint: np.ndarray
     face_owner: np.ndarray
+    params: dict = field(default_factory=dict)
     _scene: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -555,6 +654,9 @@ def make_city(
     margin: float | None = None,
     origin: tuple[float, float, float] = _DEFAULT_ORIGIN,
     crs: str = "EPSG:32631",
+    terrain: str = "gentle",
+    layout: str = "regular",
+    trees: str = "beside",
 ) -> SyntheticCity:
     """Build a procedural city, deterministic for a given seed.
 
@@ -562,16 +664,25 @@ def make_city(
     ----------
     seed : int
     size : float
-        Side of the square city area in metres (at least 38 m: one lot).
+        Side of the square city area in metres (at least one lot and its street).
     n_buildings : int, optional
-        Number of buildings; default one per lot (streets 8 m wide every 30 to 42 m,
-        lined with the city edges). At most the number of lots.
+        Number of buildings; default one per built lot of the layout. At most the
+        number of lots.
     margin : float, optional
         How far the terrain extends beyond the city area (default ``size``, so
         oblique views of the city see terrain to the image borders).
     origin : (3,) float
         World coordinates of the local origin.
     crs : str
+    terrain : {"gentle", "flat", "slope", "hilly"}
+        See :data:`TERRAINS`: a few metres of relief, none, a 10 % incline, hills of
+        up to 15 m.
+    layout : {"regular", "dense", "sparse"}
+        See :data:`LAYOUTS`: 36 m lots, 25 m lots with 6 m streets, or 40 % of the
+        36 m lots built.
+    trees : {"none", "beside", "over"}
+        No trees; trees on open ground clear of the buildings; or those plus trees
+        beside a third of the buildings whose crowns reach over the roof.
 
     Returns
     -------
@@ -580,13 +691,19 @@ def make_city(
     Raises
     ------
     ValueError
-        ``n_buildings`` exceeds the number of lots, or the city is too small.
+        ``n_buildings`` exceeds the number of lots, the city is too small, or an
+        unknown terrain, layout or tree placement.
     """
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout {layout!r} is not one of {tuple(LAYOUTS)}")
+    if trees not in TREES:
+        raise ValueError(f"trees {trees!r} is not one of {TREES}")
+    plan = LAYOUTS[layout]
     frame = LocalFrame(tuple(float(v) for v in origin))
-    terrain = _make_terrain(_rng(seed, 1), size, size if margin is None else margin)
-    streets = _street_grid(size)
+    ground = _make_terrain(_rng(seed, 1), size, size if margin is None else margin, terrain)
+    streets = _street_grid(size, plan)
     n_lots = streets.n**2
-    n = n_lots if n_buildings is None else int(n_buildings)
+    n = max(1, round(plan.built * n_lots)) if n_buildings is None else int(n_buildings)
     if n > n_lots:
         raise ValueError(
             f"{n} buildings do not fit a {size} m city ({n_lots} lots); make it larger"
@@ -595,15 +712,23 @@ def make_city(
     lots = sorted(rng.choice(n_lots, size=n, replace=False).tolist())
     kinds = _building_kinds(n, rng)
     buildings = []
-    for k, (lot, (plan, roof)) in enumerate(zip(lots, kinds, strict=True)):
+    for k, (lot, (plan_kind, roof)) in enumerate(zip(lots, kinds, strict=True)):
         poly = streets.lot(lot % streets.n, lot // streets.n)
-        buildings.append(_make_building(f"b{k + 1}", plan, roof, poly, terrain, frame, rng))
+        buildings.append(_make_building(f"b{k + 1}", plan_kind, roof, poly, ground, frame, rng, plan.setback))
     footprints = [b.footprint_local for b in buildings]
-    trees = _make_trees(_rng(seed, 3), size, terrain, footprints, frame.origin[2])
-    city = _assemble(seed, size, crs, frame, terrain, streets, buildings, trees)
+    planted: list[TreeTruth] = []
+    if trees != "none":
+        planted = _make_trees(_rng(seed, 3), size, ground, footprints, frame.origin[2])
+    if trees == "over":
+        planted += _overhanging_trees(_rng(seed, 5), buildings, ground, planted, frame)
+    city = _assemble(seed, size, crs, frame, ground, streets, buildings, planted)
+    city.params = {
+        "seed": int(seed), "size": float(size), "n_buildings": n_buildings, "margin": margin,
+        "origin": list(frame.origin), "crs": crs, "terrain": terrain, "layout": layout, "trees": trees,
+    }
     log.info(
-        "synthetic city seed %d: %.0f m, %d buildings, %d trees, %d triangles",
-        seed, size, len(buildings), len(trees), len(city.faces),
+        "synthetic city seed %d: %.0f m, %s terrain, %s layout, %d buildings, %d trees, %d triangles",
+        seed, size, terrain, layout, len(buildings), len(planted), len(city.faces),
     )
     return city
 

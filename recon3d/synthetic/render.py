@@ -28,6 +28,7 @@ __all__ = [
     "Lighting",
     "PinholeCamera",
     "Render",
+    "block_cameras",
     "check_coverage",
     "render",
     "render_pair",
@@ -199,6 +200,106 @@ def stereo_cameras(
         cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), name))
     log.debug("%d images: flying height %.1f m, base %.1f m, focal %.0f px", n_images, flying, base, f)
     return tuple(cams)
+
+
+def block_cameras(
+    target: np.ndarray,
+    *,
+    width: int,
+    height: int,
+    focal: float,
+    gsd: float,
+    base_to_height: float,
+    heading: float = 0.0,
+    base_angle: float = 0.0,
+    principal_offset: tuple[float, float] = (0.0, 0.0),
+    attitude: float = 1.7,
+    strips: int = 1,
+    images_per_strip: int = 2,
+    side_overlap: float = 0.3,
+    seed: int = 0,
+) -> tuple[PinholeCamera, ...]:
+    """A nadir aerial block: strips of frame images over ``target``, as a survey flies them.
+
+    The cameras fly ``focal * gsd`` above the target. Along a strip they are
+    ``base_to_height`` times that apart, in the direction of ``heading``; strips lie
+    side by side with ``side_overlap``, every other one flown the opposite way (its
+    images turned 180 degrees). Each camera looks straight down, its image x axis at
+    ``base_angle`` degrees from the flight direction (0: the base along the image x
+    axis, 90: along y, 45: diagonal), then turned by a random roll, pitch and yaw of up
+    to ``attitude`` degrees each.
+
+    Parameters
+    ----------
+    target : (3,) float
+        Local point under the middle of the block (the city centre on the ground).
+    width, height : int
+        Image size in pixels.
+    focal : float
+        Focal length in pixels.
+    gsd : float
+        Ground sample distance at the flying height above ``target``, metres.
+    base_to_height : float
+    heading : float
+        Azimuth of the flight direction, degrees clockwise from north (local +y).
+    base_angle : float
+        Angle from the image x axis to the flight direction, degrees.
+    principal_offset : (float, float)
+        Principal point minus the image centre, pixels.
+    attitude : float
+        Largest attitude error about each axis, degrees.
+    strips, images_per_strip : int
+    side_overlap : float
+        Share of an image's width across the flight that the next strip sees too.
+    seed : int
+
+    Returns
+    -------
+    tuple of PinholeCamera
+        Strip by strip, named "s1_1.png", "s1_2.png", ...
+    """
+    if strips < 1 or images_per_strip < 1 or strips * images_per_strip < 2:
+        raise ValueError(f"{strips} x {images_per_strip} images: a block needs at least 2")
+    flying = focal * gsd
+    base = base_to_height * flying
+    beta = math.radians(base_angle)
+    across = (width * abs(math.sin(beta)) + height * abs(math.cos(beta))) * gsd
+    spacing = (1.0 - side_overlap) * across
+    K = np.array([
+        [focal, 0.0, width / 2 + principal_offset[0]],
+        [0.0, focal, height / 2 + principal_offset[1]],
+        [0.0, 0.0, 1.0],
+    ])
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 11]))
+    target = np.asarray(target, np.float64)
+    cams = []
+    for s in range(strips):
+        h = math.radians(heading + 180.0 * (s % 2))
+        along = np.array([math.sin(h), math.cos(h), 0.0])
+        side = np.array([math.cos(math.radians(heading)), -math.sin(math.radians(heading)), 0.0])
+        ex = np.array([math.sin(h - beta), math.cos(h - beta), 0.0])
+        ez = np.array([0.0, 0.0, -1.0])
+        nominal = np.stack([ex, np.cross(ez, ex), ez])
+        for k in range(images_per_strip):
+            step = k - (images_per_strip - 1) / 2
+            if s % 2:
+                step = -step  # the return flight starts where the last one ended
+            center = target + along * step * base + side * (s - (strips - 1) / 2) * spacing
+            center[2] += flying
+            angles = rng.uniform(-attitude, attitude, 3)
+            R = _rotation(*np.radians(angles)) @ nominal
+            cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), f"s{s + 1}_{k + 1}.png"))
+    log.debug("block of %d images: flying height %.1f m, base %.1f m, strip spacing %.1f m",
+              len(cams), flying, base, spacing)
+    return tuple(cams)
+
+
+def ground_footprint(camera: PinholeCamera, z: float) -> np.ndarray:
+    """(4, 2) local x, y where the rays through the image corners meet the plane at height ``z``."""
+    corners = np.array([[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]], float)
+    d = camera.rays(corners)
+    t = (z - camera.center[2]) / d[:, 2]
+    return (camera.center + t[:, None] * d)[:, :2]
 
 
 def check_coverage(city: SyntheticCity, cameras, margin_px: float = 2.0) -> None:
@@ -468,29 +569,46 @@ def sparse_points(
     n: int = 400,
     *,
     seed: int = 0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Surface points seen by every camera, like a sparse SfM model.
+    min_views: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Surface points seen by several cameras, like a sparse SfM model.
 
-    Points are hit by rays through random (sub-pixel) positions of the first image
-    and kept when the other cameras see them too.
+    Without ``min_views`` the points are hit by rays through random (sub-pixel)
+    positions of the first image and kept when every other camera sees them too.
+    With it, each image casts its share of the rays and a point is kept when at
+    least ``min_views`` cameras see it (its track: those cameras).
 
     Returns
     -------
     xyz : (m, 3) float64
         Local points, ``m <= n``.
     uv : (len(cameras), m, 2) float64
-        Their exact projections in each image (COLMAP pixel convention).
+        Their exact projections in each image (COLMAP pixel convention), also where
+        the camera does not see them.
+    seen : (len(cameras), m) bool
+        Which cameras see each point.
     """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 40]))
-    first, *others = cameras
-    uv0 = rng.uniform([2, 2], [first.width - 2, first.height - 2], (4 * n, 2))
-    dirs = first.rays(uv0)
-    origin = np.broadcast_to(first.center, dirs.shape)
-    t, face = _cast(city, origin, dirs)
-    xyz = origin + np.where(face >= 0, t, 0.0)[:, None] * dirs
-    keep = face >= 0
-    for camera in others:
-        keep &= visible(city, camera, xyz)
-    xyz = xyz[keep][:n]
+    sources = cameras[:1] if min_views is None else cameras
+    need = len(cameras) if min_views is None else int(min_views)
+    per = 4 * n if min_views is None else int(math.ceil(4 * n / len(cameras)))
+    points, views = [], []
+    for source in sources:
+        uv0 = rng.uniform([2, 2], [source.width - 2, source.height - 2], (per, 2))
+        dirs = source.rays(uv0)
+        origin = np.broadcast_to(source.center, dirs.shape)
+        t, face = _cast(city, origin, dirs)
+        hit = face >= 0
+        xyz = origin[hit] + t[hit, None] * dirs[hit]
+        seen = np.stack([np.ones(len(xyz), bool) if cam is source else visible(city, cam, xyz) for cam in cameras])
+        keep = seen.sum(axis=0) >= need
+        points.append(xyz[keep])
+        views.append(seen[:, keep])
+    xyz = np.concatenate(points)
+    seen = np.concatenate(views, axis=1)
+    if len(sources) > 1:  # an even share of every image, in a fixed order
+        order = rng.permutation(len(xyz))
+        xyz, seen = xyz[order], seen[:, order]
+    xyz, seen = xyz[:n], seen[:, :n]
     uv = np.stack([cam.project(xyz)[0] for cam in cameras])
-    return xyz, uv
+    return xyz, uv, seen

@@ -11,7 +11,13 @@ Layout (the input part is what ``recon3d run`` reads; ``truth/`` is for evaluati
     truth/buildings.city.json            CityJSON 2.0, LoD1 and LoD2.2 solids
     truth/checkpoints.csv                x,y,z,id,kind (ground, roof), world coordinates
     truth/trees.csv                      x,y,ground_z,top_z,crown_radius,crown,id
+    truth/views.tif                      how many images see each cell's top surface point
     truth/scene.json                     parameters of the scene (seed, gsd, cameras...)
+
+:func:`write_scene` renders the demo's kind of scene: a city that fits in every image,
+seen by convergent cameras. :func:`write_block_scene` renders a survey of the family in
+:mod:`recon3d.synthetic.family`: nadir images in strips over a city sized to the block,
+each image seeing part of it, every sparse point seen by two images or more.
 
 Every file is a deterministic function of the parameters (same seed, same bytes).
 """
@@ -20,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import tempfile
 import time
@@ -42,11 +49,13 @@ from recon3d.synthetic.city import (
     truth_dsm,
     truth_dtm,
 )
+from recon3d.synthetic.family import SceneSpec
 from recon3d.synthetic.render import (
     Lighting,
     PinholeCamera,
     Render,
     check_coverage,
+    ground_footprint,
     render_pair,
     sparse_points,
     stereo_cameras,
@@ -54,7 +63,7 @@ from recon3d.synthetic.render import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SceneInfo", "city_model", "write_colmap", "write_scene"]
+__all__ = ["SceneInfo", "city_model", "scene_city", "views", "write_block_scene", "write_colmap", "write_scene"]
 
 #: CityJSON ``referenceDate`` of the truth (fixed, so the file is byte-identical per seed).
 _REFERENCE_DATE = "2024-01-01"
@@ -68,28 +77,34 @@ class SceneInfo:
     ----------
     folder : Path
     city : SyntheticCity
-    cameras : (PinholeCamera, PinholeCamera)
+    cameras : tuple of PinholeCamera
         In local (model) coordinates.
     renders : list of Render
         Images and the surface point seen through every pixel centre.
     sparse_xyz : (n, 3) float64
         Local coordinates of the COLMAP model's 3-D points.
-    sparse_uv : (2, n, 2) float64
-        Their observations in each image (COLMAP pixel convention).
+    sparse_uv : (n_images, n, 2) float64
+        Their projections in each image (COLMAP pixel convention).
+    sparse_seen : (n_images, n) bool
+        Which images observe each point (its COLMAP track).
     cell_size : float
         Cell size of the truth rasters.
     timings : dict of str to float
         Seconds per step ("city", "render", "truth", "write").
+    spec : SceneSpec or None
+        The survey, for scenes of the family.
     """
 
     folder: Path
     city: SyntheticCity
-    cameras: tuple[PinholeCamera, PinholeCamera]
+    cameras: tuple[PinholeCamera, ...]
     renders: list[Render]
     sparse_xyz: np.ndarray
     sparse_uv: np.ndarray
+    sparse_seen: np.ndarray
     cell_size: float
     timings: dict[str, float] = field(default_factory=dict)
+    spec: SceneSpec | None = None
 
 
 def write_scene(
@@ -151,35 +166,88 @@ def write_scene(
     )
     check_coverage(city, cameras)
     timings["city"] = time.perf_counter() - start
+    record = {"base_to_height": base_to_height}
+    return _write(folder, city, cameras, gsd, lighting, n_sparse, None, record, timings, seed)
 
+
+def write_block_scene(folder: str | Path, spec: SceneSpec, *, lighting: Lighting = Lighting()) -> SceneInfo:
+    """Render a survey of the family (:class:`~recon3d.synthetic.family.SceneSpec`) to a scene folder.
+
+    The city is a square centred under the block, just large enough to hold every
+    image's ground footprint (its terrain reaches beyond, so every pixel sees ground);
+    the city's terrain, layout and trees follow the spec.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Created if needed; files of an earlier scene there are replaced.
+    spec : SceneSpec
+    lighting : Lighting
+
+    Returns
+    -------
+    SceneInfo
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    nominal = spec.cameras(np.array([0.0, 0.0, 50.0]))
+    reach = max(float(np.abs(ground_footprint(c, 50.0)).max()) for c in nominal)
+    size = float(math.ceil((2.0 * reach + 10.0) / 10.0) * 10.0)
+    low = max(float(np.abs(ground_footprint(c, -60.0)).max()) for c in nominal)
+    city = make_city(
+        spec.seed, size=size, margin=low - size / 2 + 30.0,
+        terrain=spec.terrain, layout=spec.layout, trees=spec.trees,
+    )
+    centre = np.array([size / 2])
+    target = np.array([size / 2, size / 2, float(city.terrain.height(centre, centre)[0])])
+    cameras = spec.cameras(target)
+    timings["city"] = time.perf_counter() - start
+    record = {"base_to_height": spec.base_to_height, "spec": spec.to_dict()}
+    return _write(folder, city, cameras, spec.gsd, lighting, spec.n_sparse, 2, record, timings, spec.seed, spec)
+
+
+def scene_city(folder: str | Path) -> SyntheticCity:
+    """The city of a scene folder written by this module, rebuilt from ``truth/scene.json``."""
+    record = json.loads((Path(folder) / "truth" / "scene.json").read_text(encoding="utf-8"))
+    return make_city(**record["city"])
+
+
+def _write(
+    folder, city, cameras, gsd, lighting, n_sparse, min_views, record, timings, seed, spec=None
+) -> SceneInfo:
+    """Render, then write the images, the COLMAP model, georef.json and truth/."""
+    folder = Path(folder)
+    width, height = cameras[0].width, cameras[0].height
     start = time.perf_counter()
     renders = render_pair(city, cameras, lighting=lighting, seed=seed)
-    xyz, uv = sparse_points(city, cameras, n_sparse, seed=seed)
+    xyz, uv, seen = sparse_points(city, cameras, n_sparse, seed=seed, min_views=min_views)
     timings["render"] = time.perf_counter() - start
 
     start = time.perf_counter()
     folder.mkdir(parents=True, exist_ok=True)
     for r in renders:
         _write_png(folder / "images" / r.camera.name, r.image)
-    rows = np.clip(uv[0, :, 1].astype(int), 0, height - 1)
-    cols = np.clip(uv[0, :, 0].astype(int), 0, width - 1)
-    colours = renders[0].image[rows, cols]
-    write_colmap(folder / "sparse", cameras, xyz, uv, colours)
+    first = np.argmax(seen, axis=0)  # colour of each point from the first image that sees it
+    rows = np.clip(uv[first, np.arange(len(xyz)), 1].astype(int), 0, height - 1)
+    cols = np.clip(uv[first, np.arange(len(xyz)), 0].astype(int), 0, width - 1)
+    images = np.stack([r.image for r in renders])
+    colours = images[first, rows, cols]
+    write_colmap(folder / "sparse", cameras, xyz, uv, colours, seen=seen)
     _write_json(folder / "georef.json", {"crs": city.crs, "offset": list(city.origin)})
     timings["write"] = time.perf_counter() - start
 
     start = time.perf_counter()
     cell = nice_cell_size(gsd)
-    _write_truth(folder / "truth", city, cell)
-    record = _scene_record(city, cameras, gsd, cell, base_to_height, lighting, len(xyz))
+    _write_truth(folder / "truth", city, cell, cameras)
+    record = {**_scene_record(city, cameras, gsd, cell, lighting, len(xyz)), **record}
     _write_json(folder / "truth" / "scene.json", record)
     timings["truth"] = time.perf_counter() - start
     log.info(
-        "synthetic scene %s: %d buildings, %d trees, %d sparse points; %s",
-        folder, len(city.buildings), len(city.trees), len(xyz),
+        "synthetic scene %s: %d buildings, %d trees, %d images, %d sparse points; %s",
+        folder, len(city.buildings), len(city.trees), len(cameras), len(xyz),
         ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()),
     )
-    return SceneInfo(folder, city, cameras, renders, xyz, uv, cell, timings)
+    return SceneInfo(folder, city, cameras, renders, xyz, uv, seen, cell, timings, spec)
 
 
 def _terrain_margin(
@@ -211,6 +279,8 @@ def write_colmap(
     xyz: np.ndarray,
     uv: np.ndarray,
     colours: np.ndarray | None = None,
+    *,
+    seen: np.ndarray | None = None,
 ) -> None:
     """Write a COLMAP text model: one PINHOLE camera per image, posed images, 3-D points.
 
@@ -225,6 +295,8 @@ def write_colmap(
     uv : (len(cameras), n, 2) float64
         Observation of every point in every image (COLMAP pixel convention).
     colours : (n, 3) uint8, optional
+    seen : (len(cameras), n) bool, optional
+        Which images observe each point (its track); default every image.
     """
     import pycolmap
 
@@ -240,8 +312,10 @@ def write_colmap(
         rec.add_image_with_trivial_frame(image, pose)
     if colours is None:
         colours = np.full((len(xyz), 3), 128, np.uint8)
+    if seen is None:
+        seen = np.ones((len(cameras), len(xyz)), bool)
     for i, (p, c) in enumerate(zip(xyz, colours, strict=True)):
-        track = pycolmap.Track([pycolmap.TrackElement(k, i) for k in range(1, len(cameras) + 1)])
+        track = pycolmap.Track([pycolmap.TrackElement(k, i) for k in range(1, len(cameras) + 1) if seen[k - 1, i]])
         rec.add_point3D(np.asarray(p, np.float64), track, np.asarray(c, np.uint8))
     rec.update_point_3d_errors()  # ~1e-13 px: the observations are exact projections
     folder = Path(folder)
@@ -270,8 +344,31 @@ def city_model(city: SyntheticCity) -> CityModel:
     return CityModel(buildings, parse_crs(city.crs), frame, meta)
 
 
-def _write_truth(folder: Path, city: SyntheticCity, cell: float) -> None:
-    """dsm.tif, dtm.tif, footprints.geojson, buildings.city.json, checkpoints.csv, trees.csv."""
+def views(city: SyntheticCity, cameras, surface: np.ndarray, transform) -> np.ndarray:
+    """(rows, cols) float32: how many cameras have each cell's top surface point in frame.
+
+    Parameters
+    ----------
+    surface : (rows, cols) float
+        World heights of the top surface (the truth DSM); NaN cells see nothing.
+    transform : affine.Affine
+        Its world grid.
+    """
+    rows, cols = surface.shape
+    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    x = transform.c + c * transform.a + r * transform.b
+    y = transform.f + c * transform.d + r * transform.e
+    local = np.column_stack([x.ravel(), y.ravel(), np.nan_to_num(surface.ravel())]) - np.asarray(city.origin)
+    count = np.zeros(rows * cols, np.float32)
+    for cam in cameras:
+        uv, depth = cam.project(local)
+        count += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+    count[~np.isfinite(surface.ravel())] = 0
+    return count.reshape(rows, cols)
+
+
+def _write_truth(folder: Path, city: SyntheticCity, cell: float, cameras) -> None:
+    """dsm.tif, dtm.tif, views.tif, footprints.geojson, buildings.city.json, checkpoints.csv, trees.csv."""
     from recon3d.io.cityjson import write_cityjson
     from recon3d.io.geotiff import write_raster
     from recon3d.io.vectors import write_features
@@ -284,6 +381,8 @@ def _write_truth(folder: Path, city: SyntheticCity, cell: float) -> None:
     dtm = truth_dtm(city, transform, shape)
     write_raster(Raster(dsm, transform, crs, {**tags, "product": "DSM"}), folder / "dsm.tif")
     write_raster(Raster(dtm, transform, crs, {**tags, "product": "DTM"}), folder / "dtm.tif")
+    seen = views(city, cameras, dsm, transform)
+    write_raster(Raster(seen, transform, crs, {**tags, "product": "images seeing the cell"}), folder / "views.tif")
     props = [
         {
             "id": b.id,
@@ -316,7 +415,7 @@ def _write_truth(folder: Path, city: SyntheticCity, cell: float) -> None:
     _write_text(folder / "trees.csv", "\n".join(rows) + "\n")
 
 
-def _scene_record(city, cameras, gsd, cell, b_h, lighting, n_sparse) -> dict:
+def _scene_record(city, cameras, gsd, cell, lighting, n_sparse) -> dict:
     """JSON-ready description of the scene (parameters, cameras in world coordinates)."""
     return {
         "generator": "recon3d.synthetic",
@@ -326,7 +425,7 @@ def _scene_record(city, cameras, gsd, cell, b_h, lighting, n_sparse) -> dict:
         "offset": list(city.origin),
         "gsd": gsd,
         "cell_size": cell,
-        "base_to_height": b_h,
+        "city": city.params,
         "n_buildings": len(city.buildings),
         "n_trees": len(city.trees),
         "n_sparse_points": n_sparse,

@@ -152,7 +152,9 @@ def grid_stereo(
     return out
 
 
-def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> np.ndarray:
+def fill_small_holes(
+    data: np.ndarray, max_cells: int, *, rim: str = "mean", area: np.ndarray | None = None
+) -> np.ndarray:
     """Fill NaN regions of at most ``max_cells`` cells that do not touch the border.
 
     Each hole cell takes one value of the valid cells on the hole's rim (its one-cell
@@ -161,29 +163,36 @@ def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> 
     holes are ground hidden from one image behind a building: their rim is part roof
     edge, part ground. Larger or border-touching holes stay NaN.
 
+    With ``area``, the cells the data should cover (the ground two images both see),
+    only holes inside it are filled, and a hole may touch its edge or the border: ground
+    hidden behind a building at the edge of the images is as much a hole as one in the
+    middle.
+
     Parameters
     ----------
     data : (rows, cols) float
     max_cells : int
     rim : {"mean", "low"}
+    area : (rows, cols) bool, optional
 
     Returns
     -------
     (rows, cols) float, a copy.
     """
     out = data.copy()
-    holes = ~np.isfinite(out)
+    holes = ~np.isfinite(out) if area is None else ~np.isfinite(out) & area
     labels, n = ndimage.label(holes)
     if n == 0:
         return out
     sizes = np.bincount(labels.ravel())
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     keep = (sizes <= max_cells) & (np.arange(n + 1) > 0)
-    keep[border] = False
+    if area is None:
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        keep[border] = False
     fill = keep[labels]
     if not fill.any():
         return out
-    rim_labels = (ndimage.grey_dilation(np.where(fill, labels, 0), size=3) * ~holes).ravel()
+    rim_labels = (ndimage.grey_dilation(np.where(fill, labels, 0), size=3) * np.isfinite(out)).ravel()
     values = np.nan_to_num(out).ravel()
     counts = np.bincount(rim_labels, minlength=n + 1)
     if rim == "low":
@@ -191,7 +200,7 @@ def fill_small_holes(data: np.ndarray, max_cells: int, *, rim: str = "mean") -> 
         order = np.lexsort((values[on], rim_labels[on]))  # by hole, then height
         val = values[on][order]
         start = np.concatenate([[0, 0], np.cumsum(counts[1:])])[: n + 1]  # first rim value of each hole in val
-        pick = np.clip(start + np.maximum(counts - 1, 0) // 4, 0, max(len(val) - 1, 0))
+        pick = np.clip(start + np.maximum(counts - 1, 0) // 10, 0, max(len(val) - 1, 0))
         fills = np.where(counts > 0, val[pick] if len(val) else np.nan, np.nan)
     else:
         sums = np.bincount(rim_labels, weights=values, minlength=n + 1)
@@ -215,12 +224,15 @@ def make_dsm(
     rim: str = "mean",
     observed: np.ndarray | None = None,
     source: np.ndarray | None = None,
+    area=None,
 ) -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
     Points classified as noise (7) are left out; ``rim`` as in :func:`fill_small_holes`.
     With ``observed`` (and ``source``), per-point (n,) arrays of a stereo cloud, the
-    cells are gridded by :func:`grid_stereo`.
+    cells are gridded by :func:`grid_stereo`. ``area(raster)``, given the DSM before
+    hole filling, returns the (rows, cols) bool cells the data should cover (see
+    :func:`fill_small_holes`).
     """
     keep = surface_points(cloud)
     xyz = cloud.xyz[keep]
@@ -232,7 +244,8 @@ def make_dsm(
         source = None if source is None else np.asarray(source)[keep]
         dsm = grid_stereo(xyz, transform, shape, observed=np.asarray(observed, bool)[keep], source=source)
         method = "highest observed point per cell and pair, median over the pairs"
-    dsm = fill_small_holes(dsm, max_hole_cells, rim=rim)
+    raw = Raster(dsm, transform, cloud.crs)
+    dsm = fill_small_holes(dsm, max_hole_cells, rim=rim, area=None if area is None else area(raw))
     return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": method})
 
 

@@ -1,0 +1,166 @@
+"""The self-check of a matched pair against what its own input already knows.
+
+A COLMAP model holds triangulated sparse points: bundle adjusted, each observed by
+the images of its track. Dense matching must agree with them. For every pair,
+:func:`check_pair` measures
+
+- **coverage**: the share of the sparse points both images observe whose pixel, or a
+  neighbour of it, holds a matched disparity (not a filled-in one). A rectification that
+  drops part of the common area, or a disparity search that misses the scene, shows
+  here first;
+- **discrepancy**: the distance from each covered sparse point to the dense surface
+  along its ray, from the matched disparity of its 3 x 3 pixel neighbourhood closest to
+  its own (the sparse point's pixel is itself uncertain by about a pixel);
+- **reprojection**: dense points triangulated from a sample of matched pixels, projected
+  into both original images through the cameras (lens distortion included), against
+  the pixels the rectified images were resampled from. Rectification and triangulation
+  must agree to a small fraction of a pixel.
+
+:func:`verdict` turns the figures into an error (the geometry contradicts the input:
+nothing is written) or a warning (part of the area is lost), with the pair and the
+figures named.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon3d.errors import InputError
+from recon3d.stereo.rectify import RectifiedPair
+
+__all__ = ["LIMITS", "check_pair", "verdict"]
+
+#: Thresholds of :func:`verdict`: least coverage (percent, a warning below), largest
+#: median discrepancy (ground sample distances) and largest 95th percentile of the
+#: reprojection error (pixels), errors beyond.
+LIMITS = {"coverage_percent": 90.0, "discrepancy_gsd": 2.0, "reprojection_px": 1.0}
+
+
+def check_pair(
+    pair: RectifiedPair,
+    disparity: np.ndarray,
+    matched: np.ndarray,
+    points: np.ndarray,
+    *,
+    samples: int = 20000,
+) -> dict:
+    """Compare a pair's dense disparities with the sparse points both images observe.
+
+    Parameters
+    ----------
+    pair : RectifiedPair
+    disparity : (H, W) float
+        Left-image disparity (NaN where none).
+    matched : (H, W) bool
+        Pixels whose disparity was matched rather than filled in.
+    points : (n, 3) float
+        Sparse points in both images' tracks, model coordinates.
+    samples : int
+        Matched pixels reprojected into the original images (an even spread).
+
+    Returns
+    -------
+    dict
+        ``sparse_points``, ``covered``, ``coverage_percent``, ``discrepancy_m`` (median),
+        ``discrepancy_p90_m``, ``gsd_m``, ``discrepancy_gsd``, ``disparity_error_px``
+        (median), ``reprojection_px`` (95th percentile, worse image), ``uncovered``
+        (model xyz of the sparse points not covered, (k, 3)).
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    h, w = disparity.shape
+    uvl, uvr = pair.project(points)
+    expected = uvl[:, 0] - uvr[:, 0]
+    col, row = np.rint(uvl[:, 0]).astype(np.int64), np.rint(uvl[:, 1]).astype(np.int64)
+    ok = matched & np.isfinite(disparity)
+    best = np.full(len(points), np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r, c = row + dr, col + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            err = np.full(len(points), np.inf)
+            hit = inside.copy()
+            hit[inside] = ok[r[inside], c[inside]]
+            err[hit] = np.abs(disparity[r[hit], c[hit]] - expected[hit])
+            best = np.minimum(best, err)
+    covered = np.isfinite(best)
+    distance = np.linalg.norm(points - pair.camera_left.center, axis=1)
+    # moving the disparity by e moves the point along its ray by e / (d - offset) of its distance
+    along = best / np.maximum(expected - pair.offset, 1e-9) * distance
+    gsd = float(np.median(distance / pair.focal)) if len(points) else float("nan")
+    result = {
+        "sparse_points": int(len(points)),
+        "covered": int(covered.sum()),
+        "coverage_percent": round(100.0 * float(covered.mean()), 2) if len(points) else 0.0,
+        "gsd_m": round(gsd, 4),
+        "reprojection_px": _reprojection(pair, disparity, ok, samples),
+        "uncovered": points[~covered],
+    }
+    if covered.any():
+        median = float(np.median(along[covered]))
+        result.update(
+            discrepancy_m=round(median, 4),
+            discrepancy_p90_m=round(float(np.percentile(along[covered], 90)), 4),
+            discrepancy_gsd=round(median / gsd, 3),
+            disparity_error_px=round(float(np.median(best[covered])), 3),
+        )
+    return result
+
+
+def _reprojection(pair: RectifiedPair, disparity: np.ndarray, ok: np.ndarray, samples: int) -> float | None:
+    """95th percentile (pixels) of the worse image's reprojection error of matched pixels."""
+    rows, cols = np.nonzero(ok)
+    if not len(rows):
+        return None
+    pick = np.linspace(0, len(rows) - 1, min(samples, len(rows))).astype(np.int64)
+    y, x = rows[pick].astype(np.float64), cols[pick].astype(np.float64)
+    d = disparity[rows[pick], cols[pick]].astype(np.float64)
+    xyz = pair.triangulate(x, y, d)
+    good = np.isfinite(xyz).all(axis=1)
+    errors = []
+    for cam, xy, right in ((pair.camera_left, np.column_stack([x, y]), False),
+                           (pair.camera_right, np.column_stack([x - d, y]), True)):
+        seen = pair.to_original(xy[good], right=right)
+        projected = cam.project(xyz[good], distort=True)[0]
+        errors.append(np.linalg.norm(projected - seen, axis=1))
+    worst = np.maximum(*errors)
+    return round(float(np.percentile(worst, 95)), 4) if worst.size else None
+
+
+def verdict(name: str, check: dict, limits: dict = LIMITS, *, offset=(0.0, 0.0, 0.0)) -> str | None:
+    """Raise when a pair's dense result contradicts its input; return a warning or None.
+
+    The warning names where the uncovered sparse points lie, in world coordinates
+    (model + ``offset``).
+
+    Raises
+    ------
+    InputError
+        Median discrepancy above ``limits["discrepancy_gsd"]`` ground sample distances
+        (and above one pixel of disparity, the sparse points' own precision), or a
+        reprojection error above ``limits["reprojection_px"]``.
+    """
+    reproj = check.get("reprojection_px")
+    if reproj is not None and reproj > limits["reprojection_px"]:
+        raise InputError(
+            f"images {name}: dense points reproject {reproj:.2f} px from where they were matched "
+            f"(95th percentile, limit {limits['reprojection_px']} px); the rectification does not fit the cameras"
+        )
+    if check.get("covered", 0) and check["discrepancy_gsd"] > limits["discrepancy_gsd"] and check["disparity_error_px"] > 1.0:
+        raise InputError(
+            f"images {name}: the dense surface lies {check['discrepancy_m']:.2f} m "
+            f"({check['discrepancy_gsd']:.1f} ground sample distances, {check['disparity_error_px']:.1f} px of "
+            f"disparity) from the model's own sparse points (median of {check['covered']}); "
+            f"limit {limits['discrepancy_gsd']} GSD: the orientation or the matching is wrong"
+        )
+    if check["sparse_points"] and check["coverage_percent"] < limits["coverage_percent"]:
+        lost = check["uncovered"] + np.asarray(offset, np.float64)
+        where = ""
+        if len(lost):
+            lo, hi = lost.min(axis=0), lost.max(axis=0)
+            where = f" (x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f})"
+        return (
+            f"images {name}: the dense result covers {check['covered']} of the {check['sparse_points']} sparse "
+            f"points both images observe ({check['coverage_percent']:.0f} %, expected >= "
+            f"{limits['coverage_percent']:.0f} %); {len(lost)} lie where nothing was matched{where}"
+        )
+    return None

@@ -1,0 +1,202 @@
+"""Benchmark: frame stereo on the synthetic survey family, side by side with plain OpenCV.
+
+For every survey of :mod:`recon3d.synthetic.family` (the named corner cases, then random
+ones), renders the scene, runs ``recon3d run`` on it and, on the same images and
+cameras, the plain OpenCV pipeline a user would otherwise write
+(``cv2.stereoRectify`` + ``cv2.StereoSGBM`` + highest point per cell, images turned 90
+degrees when the base runs along the columns), and scores both against the truth
+(:mod:`recon3d.synthetic.score`). Prints one table; ``--json`` keeps every figure.
+
+    .venv/bin/python scripts/bench_frame_stereo.py                 # full size, 9 named + 4 random
+    .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
+    .venv/bin/python scripts/bench_frame_stereo.py --only nadir_pair --vectors
+
+``--vectors`` also runs recon3d with the truth footprints (roof heights) and spot heights
+as matching constraints (vector-constrained matching), to measure their gain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from recon3d.core.raster import Raster, grid_for_bounds
+from recon3d.io.colmap import read_scene
+from recon3d.pipeline.run import run
+from recon3d.synthetic.family import CONFIGURATIONS, family
+from recon3d.synthetic.scene import scene_city, write_block_scene
+from recon3d.synthetic.score import score_stereo
+from recon3d.terrain.dsm import grid_points
+
+
+def opencv_baseline(folder: Path, cell: float) -> tuple[Raster, float]:
+    """Plain OpenCV on the scene's pairs: rectify, SGBM, reproject, highest point per cell."""
+    scene = read_scene(folder)
+    t0 = time.perf_counter()
+    points = []
+    for i in range(len(scene.cameras)):
+        for j in range(i + 1, len(scene.cameras)):
+            common = scene.seen[i] & scene.seen[j]
+            if common.sum() >= 10:
+                points.append(_baseline_pair(scene.cameras[i], scene.cameras[j], scene.sparse[common]))
+    xyz = np.concatenate(points) + scene.offset
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
+    dsm = grid_points(xyz, transform, shape, reducer="max")
+    return Raster(dsm.astype(np.float32), transform, scene.crs), time.perf_counter() - t0
+
+
+def _baseline_pair(a, b, sparse: np.ndarray) -> np.ndarray:
+    img_a, img_b = cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path))
+    R = b.R @ a.R.T
+    T = b.t - R @ a.t
+    turn = abs(T[1]) > abs(T[0])
+    if turn:  # OpenCV rectifies a column base vertically; SGBM matches rows: turn both views
+        rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        a, b = (_turned(c, rot) for c in (a, b))
+        img_a, img_b = (cv2.rotate(i, cv2.ROTATE_90_CLOCKWISE) for i in (img_a, img_b))
+        R, T = rot @ R @ rot.T, rot @ T
+    if T[0] > 0:  # b on the left: swap for positive disparities
+        a, b, img_a, img_b = b, a, img_b, img_a
+        R, T = R.T, -R.T @ T
+    size = (a.width, a.height)
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(a.K, a.dist, b.K, b.dist, size, R, T.reshape(3, 1))
+    maps = [cv2.initUndistortRectifyMap(c.K, c.dist, Rr, P, size, cv2.CV_32FC1)
+            for c, Rr, P in ((a, R1, P1), (b, R2, P2))]
+    left = cv2.remap(cv2.cvtColor(img_a, cv2.COLOR_BGR2GRAY), *maps[0], cv2.INTER_LINEAR)
+    right = cv2.remap(cv2.cvtColor(img_b, cv2.COLOR_BGR2GRAY), *maps[1], cv2.INTER_LINEAR)
+    cam = sparse @ a.R.T + a.t
+    rect = cam @ R1.T
+    d = (rect[:, 0] * P1[0, 0] / rect[:, 2] + P1[0, 2]) - ((rect[:, 0] * P2[0, 0] + P2[0, 3]) / rect[:, 2] + P2[0, 2])
+    dmin = int(np.floor(d.min())) - 8
+    ndisp = 16 * int(np.ceil((d.max() + 8 - dmin) / 16))
+    block = 5
+    sgbm = cv2.StereoSGBM_create(minDisparity=dmin, numDisparities=ndisp, blockSize=block,
+                                 P1=8 * block * block, P2=32 * block * block, uniquenessRatio=10,
+                                 speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1)
+    disp = sgbm.compute(left, right).astype(np.float32) / 16.0
+    ok = disp > dmin
+    xyz_rect = cv2.reprojectImageTo3D(disp, Q)[ok].astype(np.float64)
+    xyz_cam = xyz_rect @ R1  # rectified to camera frame
+    return (xyz_cam - a.t) @ a.R
+
+
+def _turned(cam, rot):
+    from recon3d.core.camera import Camera
+
+    fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+    K = np.array([[fy, 0.0, cam.height - 1 - cy], [0.0, fx, cx], [0.0, 0.0, 1.0]])
+    k1, k2, p1, p2, k3 = cam.dist
+    return Camera(cam.name, K, np.array([k1, k2, p2, -p1, k3]), rot @ cam.R, rot @ cam.t,
+                  cam.height, cam.width, cam.image_path)
+
+
+def bench_one(spec, tmp: Path, *, vectors: bool) -> dict:
+    folder = tmp / spec.name
+    t = time.perf_counter()
+    write_block_scene(folder, spec)
+    render = time.perf_counter() - t
+    city = scene_city(folder)
+    truth = folder / "truth"
+    row = {"scene": spec.name, "images": spec.strips * spec.images_per_strip, "size": f"{spec.width}x{spec.height}",
+           "render_s": round(render, 1), "spec": spec.to_dict()}
+    runs = {"recon3d": {}}
+    if vectors:
+        runs["recon3d+vectors"] = {"footprints": truth / "footprints.geojson"}
+    for name, extra in runs.items():
+        t = time.perf_counter()
+        try:
+            state = run(folder, tmp / f"out-{spec.name}-{name}", checkpoints=truth / "checkpoints.csv", overwrite=True,
+                        config=None, **extra)
+        except Exception as exc:  # a failure is a result too
+            row[name] = {"error": str(exc)[:300]}
+            continue
+        observed = ~state.dsm_filled & np.isfinite(state.dsm.data)
+        if state.dsm_unobserved is not None:
+            observed &= ~state.dsm_unobserved
+        score = score_stereo(folder, state.dsm, dtm=state.dtm, footprints=[b.footprint for b in state.city],
+                             observed=observed, city=city)
+        score["seconds"] = round(time.perf_counter() - t, 1)
+        score["stereo_seconds"] = state.timings.get("stereo")
+        score["warnings"] = state.warnings
+        score["pairs"] = [{k: p.get(k) for k in ("pair", "matched_percent", "self_check")} for p in state.auto["stereo"]["pairs"]]
+        row[name] = score
+        cell = state.dsm.resolution
+    dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
+    score = score_stereo(folder, dsm, city=city)
+    score["ground_rms_dsm"] = _ground_on(dsm, truth)
+    score["seconds"] = round(seconds, 1)
+    row["opencv"] = score
+    return row
+
+
+def _ground_on(dsm: Raster, truth: Path) -> float | None:
+    from recon3d.synthetic.score import _checkpoints
+
+    views = __import__("recon3d.io.geotiff", fromlist=["read_raster"]).read_raster(truth / "views.tif")
+    xyz, kinds = _checkpoints(truth / "checkpoints.csv")
+    inside = np.nan_to_num(views.sample(xyz[:, 0], xyz[:, 1], bilinear=False)) >= 2
+    sel = inside & (kinds == "ground")
+    e = dsm.sample(xyz[sel, 0], xyz[sel, 1]) - xyz[sel, 2]
+    e = e[np.isfinite(e)]
+    return round(float(np.sqrt(np.mean(e**2))), 3) if e.size else None
+
+
+COLUMNS = [
+    ("coverage", "cover%"), ("observed", "match%"), ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
+    ("ground_rms", "gndDTM"), ("roof_rms", "roof"), ("footprint_completeness", "compl%"),
+    ("footprint_correctness", "corr%"), ("seconds", "s"),
+]
+
+
+def print_table(rows: list[dict]) -> None:
+    names = [n for n in ("recon3d", "recon3d+vectors", "opencv") if any(n in r for r in rows)]
+    head = f"{'scene':<15}{'who':<16}" + "".join(f"{c:>8}" for _, c in COLUMNS)
+    print(head)
+    for r in rows:
+        for n in names:
+            res = r.get(n)
+            if res is None:
+                continue
+            if "error" in res:
+                print(f"{r['scene']:<15}{n:<16}error: {res['error'][:100]}")
+                continue
+            cells = []
+            for key, _ in COLUMNS:
+                v = res.get("ground_rms_dsm") if (key == "ground_rms" and n == "opencv") else res.get(key)
+                cells.append(f"{v:>8.2f}" if isinstance(v, float | int) else f"{'-':>8}")
+            print(f"{r['scene']:<15}{n:<16}" + "".join(cells))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--width", type=int, help="image width (px) for every survey, same geometry (default: full size)")
+    parser.add_argument("--random", type=int, default=4, help="random surveys after the named ones")
+    parser.add_argument("--only", nargs="*", help="named configurations to run (and no random ones)")
+    parser.add_argument("--vectors", action="store_true", help="also run with the truth footprints as constraints")
+    parser.add_argument("--json", type=Path, help="write every figure here")
+    args = parser.parse_args()
+    specs = [CONFIGURATIONS[n] for n in args.only] if args.only else family(args.random)
+    if args.width:
+        specs = [s.with_width(args.width) for s in specs]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in specs:
+            rows.append(bench_one(spec, Path(tmp), vectors=args.vectors))
+            print_table(rows[-1:])
+    print()
+    print_table(rows)
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()
