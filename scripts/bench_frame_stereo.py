@@ -46,7 +46,12 @@ def opencv_baseline(folder: Path, cell: float) -> tuple[Raster, float]:
             common = scene.seen[i] & scene.seen[j]
             if common.sum() >= 10:
                 points.append(_baseline_pair(scene.cameras[i], scene.cameras[j], scene.sparse[common]))
-    xyz = np.concatenate(points) + scene.offset
+    # keep what lies near the sparse points (a user crops to the area of interest)
+    lo, hi = scene.sparse.min(axis=0), scene.sparse.max(axis=0)
+    pad = 0.2 * (hi - lo) + np.array([0.0, 0.0, 30.0])
+    xyz = np.concatenate(points)
+    xyz = xyz[np.isfinite(xyz).all(axis=1) & (xyz >= lo - pad).all(axis=1) & (xyz <= hi + pad).all(axis=1)]
+    xyz = xyz + scene.offset
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
     dsm = grid_points(xyz, transform, shape, reducer="max")
@@ -82,7 +87,7 @@ def _baseline_pair(a, b, sparse: np.ndarray) -> np.ndarray:
                                  P1=8 * block * block, P2=32 * block * block, uniquenessRatio=10,
                                  speckleWindowSize=100, speckleRange=2, disp12MaxDiff=1)
     disp = sgbm.compute(left, right).astype(np.float32) / 16.0
-    ok = disp > dmin
+    ok = (disp > dmin) & (disp > 0)  # disparity 0 is a point at infinity
     xyz_rect = cv2.reprojectImageTo3D(disp, Q)[ok].astype(np.float64)
     xyz_cam = xyz_rect @ R1  # rectified to camera frame
     return (xyz_cam - a.t) @ a.R
@@ -150,7 +155,7 @@ def _ground_on(dsm: Raster, truth: Path) -> float | None:
 
 
 COLUMNS = [
-    ("coverage", "cover%"), ("observed", "match%"), ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
+    ("coverage", "cover%"), ("observed", "match%"), ("visible", "vis%"), ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
     ("ground_rms", "gndDTM"), ("roof_rms", "roof"), ("footprint_completeness", "compl%"),
     ("footprint_correctness", "corr%"), ("seconds", "s"),
 ]
@@ -175,6 +180,20 @@ def print_table(rows: list[dict]) -> None:
             print(f"{r['scene']:<15}{n:<16}" + "".join(cells))
 
 
+def print_summary(rows: list[dict]) -> None:
+    """Median over the surveys of every column, per pipeline."""
+    for n in ("recon3d", "recon3d+vectors", "opencv"):
+        ok = [r[n] for r in rows if n in r and "error" not in r[n]]
+        if not ok:
+            continue
+        cells = []
+        for key, _ in COLUMNS:
+            key = "ground_rms_dsm" if (key == "ground_rms" and n == "opencv") else key
+            vals = [v[key] for v in ok if isinstance(v.get(key), float | int)]
+            cells.append(f"{np.median(vals):>8.2f}" if vals else f"{'-':>8}")
+        print(f"{'median':<15}{n:<16}" + "".join(cells))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, help="image width (px) for every survey, same geometry (default: full size)")
@@ -193,6 +212,7 @@ def main() -> None:
             print_table(rows[-1:])
     print()
     print_table(rows)
+    print_summary(rows)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str))

@@ -81,6 +81,7 @@ class RunState:
     dsm: Raster | None = None
     dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
     common_area: np.ndarray | None = None  # frame stereo: DSM cells two matched images both see
+    dsm_consistent: np.ndarray | None = None  # stereo: DSM cells holding a guess the images agree with
     reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
     dtm: Raster | None = None
@@ -359,7 +360,11 @@ def make_dsm(s: RunState) -> None:
     if observed is not None and not observed.all():
         count = dsm_stage.grid_points(s.cloud.xyz[observed > 0], s.dsm.transform, s.dsm.shape, reducer="count")
         s.dsm_unobserved = (count == 0) & np.isfinite(s.dsm.data)
-    if frame_stereo:
+        consistent = s.cloud.attributes.get("consistent")
+        if consistent is not None:
+            count = dsm_stage.grid_points(s.cloud.xyz[consistent > 0], s.dsm.transform, s.dsm.shape, reducer="count")
+            s.dsm_consistent = count > 0
+    if frame_stereo and s.common_area is not None:
         _check_common_area(s)
 
 
@@ -460,34 +465,38 @@ def make_dtm(s: RunState) -> None:
 
 
 def _lower_unseen_guesses(s: RunState, noise: float) -> None:
-    """Stereo DSM cells filled in at a height where every camera would have seen them
-    (and so matched them) are hidden ground: they take the DTM.
+    """Stereo DSM cells filled in at a height where both images of a matched pair would
+    have seen them (and so matched them) are hidden ground: they take the DTM.
 
-    Cells holding no observed point (a matched pixel, or a filled-in one the images
-    agree with) are judged, in regions of at least 4 m2: the few cells the matcher
-    misses on a roof or in a crown are noise, not hidden ground.
+    Cells holding no matched point and no guess the images agree with are judged, in
+    regions of at least 4 m2: the few cells the matcher misses on a roof or in a crown
+    are noise, not hidden ground.
     """
     from scipy import ndimage
 
-    cameras = s.scene.cameras
+    cameras = {c.name: c for c in s.scene.cameras}
     offset = np.asarray(s.scene.offset)
-
-    def in_frame(i, xyz):
-        uv, depth = cameras[i].project(xyz - offset)
-        w, h = cameras[i].width, cameras[i].height
-        return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
-
-    regions, n = ndimage.label(s.dsm_unobserved)
+    unjudged = s.dsm_unobserved if s.dsm_consistent is None else s.dsm_unobserved & ~s.dsm_consistent
+    regions, n = ndimage.label(unjudged)
     area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * s.dsm.resolution**2
-    judged = s.dsm_unobserved & (np.r_[0.0, area][regions] >= s.units.area(4.0))
-    centres = np.array([c.center for c in cameras]) + offset
+    judged = unjudged & (np.r_[0.0, area][regions] >= s.units.area(4.0))
     tolerance = max(s.units.height(0.5), 3.0 * noise)
-    seen = dsm_stage.seen_by_all(s.dsm, judged, centres, tolerance=tolerance, in_frame=in_frame)
+    seen = np.zeros(judged.shape, bool)
+    for record in s.auto["stereo"]["pairs"]:
+        pair = [cameras[name] for name in record["images"]]
+
+        def in_frame(i, xyz, pair=pair):
+            uv, depth = pair[i].project(xyz - offset)
+            w, h = pair[i].width, pair[i].height
+            return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+
+        centres = np.array([c.center for c in pair]) + offset
+        seen |= dsm_stage.seen_by_all(s.dsm, judged & ~seen, centres, tolerance=tolerance, in_frame=in_frame)
     lower = seen & (s.dsm.data > s.dtm.data + tolerance)
     s.dsm.data[lower] = s.dtm.data[lower]
     s.auto["dsm.hidden_ground"] = {
         "value": int(lower.sum()),
-        "reason": "cells no pixel observed, filled in at a height every camera would have seen: set to the DTM",
+        "reason": "cells no pixel matched, filled in at a height both images of a pair would have seen: set to the DTM",
     }
 
 

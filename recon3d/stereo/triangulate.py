@@ -13,6 +13,7 @@ __all__ = ["triangulate"]
 def triangulate(
     pair: RectifiedPair, disparity: np.ndarray, confidence: np.ndarray, *, min_angle_deg: float = 1.0,
     guessed: np.ndarray | None = None,
+    consistent: np.ndarray | None = None,
 ) -> PointCloud:
     """Intersect the rays of every valid disparity.
 
@@ -26,16 +27,18 @@ def triangulate(
     min_angle_deg : float
         Rays meeting at a smaller angle are dropped (depth too uncertain).
     guessed : (H, W) bool, optional
-        Pixels whose disparity is a guess: filled in rather than matched, and not
-        confirmed by the images.
+        Pixels whose disparity is a guess: filled in rather than matched.
+    consistent : (H, W) bool, optional
+        Guessed pixels the images agree with (photo-consistent).
 
     Returns
     -------
     PointCloud
         xyz in model coordinates (no CRS yet); attributes ``red``, ``green``,
         ``blue`` (uint16), ``quality`` (confidence scaled by the intersection angle's
-        depth precision, in [0, 1]), ``intersection_angle`` (degrees) and ``observed``
-        (uint8, 0 for points of guessed pixels; all 1 without ``guessed``).
+        depth precision, in [0, 1]), ``intersection_angle`` (degrees), ``observed``
+        (uint8, 0 for points of guessed pixels; all 1 without ``guessed``) and, with
+        ``consistent``, ``consistent`` (uint8, 1 for guesses the images agree with).
     """
     valid = np.isfinite(disparity) & pair.valid_left
     rows, cols = np.nonzero(valid)
@@ -60,4 +63,6 @@ def triangulate(
         "intersection_angle": angle[keep].astype(np.float32),
         "observed": np.ones(int(keep.sum()), np.uint8) if guessed is None else (~guessed[valid][keep]).astype(np.uint8),
     }
+    if consistent is not None:
+        attributes["consistent"] = consistent[valid][keep].astype(np.uint8)
     return PointCloud(xyz[keep], attributes)

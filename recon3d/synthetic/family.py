@@ -15,6 +15,7 @@ base direction         along the image x axis, the y axis, or diagonal (45 degre
 attitude errors        0.5-5 degrees about each axis (roll, pitch, yaw)
 image aspect           1:2 to 2:1 (width : height), non-square in general
 principal point        up to 15 % of the image size off centre, either way
+lens distortion        none for half the surveys, else k1 -0.08..0.05, k2, p1, p2 small
 base-to-height         0.1-1.0
 forward overlap        55-80 %; the focal length follows from it and the ratio
                        (0.35 to 3 times the image side, as survey cameras have)
@@ -64,6 +65,8 @@ class SceneSpec:
         Largest roll, pitch and yaw error, degrees.
     strips, images_per_strip : int
     side_overlap : float
+    distortion : (k1, k2, p1, p2)
+        Lens distortion (COLMAP's OPENCV model), zeros for a distortion-free camera.
     terrain, layout, trees : str
         See :func:`~recon3d.synthetic.city.make_city`.
     n_sparse : int
@@ -85,6 +88,7 @@ class SceneSpec:
     strips: int = 1
     images_per_strip: int = 2
     side_overlap: float = 0.3
+    distortion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     terrain: str = "gentle"
     layout: str = "regular"
     trees: str = "beside"
@@ -111,6 +115,7 @@ class SceneSpec:
             base_to_height=self.base_to_height, heading=self.heading, base_angle=self.base_angle,
             principal_offset=self.principal_offset, attitude=self.attitude, strips=self.strips,
             images_per_strip=self.images_per_strip, side_overlap=self.side_overlap, seed=self.seed,
+            distortion=self.distortion,
         )
 
     def with_width(self, width: int) -> SceneSpec:
@@ -125,6 +130,7 @@ class SceneSpec:
     def to_dict(self) -> dict:
         doc = dataclasses.asdict(self)
         doc["principal_offset"] = list(self.principal_offset)
+        doc["distortion"] = list(self.distortion)
         doc["flying_height"] = round(self.flying_height, 3)
         doc["forward_overlap"] = round(self.forward_overlap, 4)
         return doc
@@ -140,11 +146,12 @@ CONFIGURATIONS: dict[str, SceneSpec] = {
     "diagonal_base": SceneSpec(seed=14, heading=30.0, base_angle=45.0, width=1600, height=1600, focal=2400.0,
                                base_to_height=0.35, terrain="hilly", name="diagonal_base"),
     "portrait_wide": SceneSpec(seed=15, width=1200, height=2000, focal=1500.0, principal_offset=(-150.0, 200.0),
-                               base_angle=90.0, base_to_height=0.6, heading=250.0, layout="dense", trees="over", name="portrait_wide"),
+                               base_angle=90.0, base_to_height=0.6, heading=250.0, layout="dense", trees="over",
+                               distortion=(-0.06, 0.015, 0.0004, -0.0003), name="portrait_wide"),
     "narrow_base": SceneSpec(seed=16, base_to_height=0.1, width=2000, height=1400, focal=4000.0, heading=315.0,
                              layout="sparse", name="narrow_base"),
     "wide_base": SceneSpec(seed=17, base_to_height=1.0, width=2000, height=1500, focal=900.0, heading=135.0,
-                           attitude=4.0, trees="over", name="wide_base"),
+                           attitude=4.0, trees="over", distortion=(-0.03, 0.004, 0.0, 0.0), name="wide_base"),
     "strip_of_3": SceneSpec(seed=18, images_per_strip=3, base_to_height=0.25, focal=3000.0, heading=60.0,
                             name="strip_of_3"),
     "block_2x3": SceneSpec(seed=19, strips=2, images_per_strip=3, base_to_height=0.25, heading=200.0,
@@ -184,11 +191,20 @@ def random_spec(seed: int) -> SceneSpec:
         strips=strips,
         images_per_strip=per_strip,
         side_overlap=0.3,
+        distortion=_distortion(rng),
         terrain=str(rng.choice(["flat", "gentle", "slope", "hilly"])),
         layout=str(rng.choice(["regular", "dense", "sparse"])),
         trees=str(rng.choice(["beside", "over"])),
         name=f"random_{seed}",
     )
+
+
+def _distortion(rng: np.random.Generator) -> tuple[float, float, float, float]:
+    if rng.random() < 0.5:
+        return (0.0, 0.0, 0.0, 0.0)
+    k1 = float(rng.uniform(-0.08, 0.05))
+    return (round(k1, 4), round(float(-0.2 * k1 * rng.uniform(0.5, 1.5)), 5),
+            round(float(rng.uniform(-5e-4, 5e-4)), 6), round(float(rng.uniform(-5e-4, 5e-4)), 6))
 
 
 def family(n: int, *, start: int = 0) -> list[SceneSpec]:

@@ -68,7 +68,7 @@ def _rows(p: np.ndarray, m: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """A pinhole camera, COLMAP conventions (PINHOLE model, cam_from_world).
+    """A frame camera, COLMAP conventions (PINHOLE or OPENCV model, cam_from_world).
 
     Attributes
     ----------
@@ -83,6 +83,8 @@ class PinholeCamera:
         Image size in pixels.
     name : str
         Image file name.
+    dist : (4,) float
+        Lens distortion (k1, k2, p1, p2) of COLMAP's OPENCV model; zeros for a pinhole.
     """
 
     K: np.ndarray
@@ -91,6 +93,7 @@ class PinholeCamera:
     width: int
     height: int
     name: str = ""
+    dist: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
     @property
     def center(self) -> np.ndarray:
@@ -98,20 +101,38 @@ class PinholeCamera:
         return -self.R.T @ self.t
 
     @property
+    def model(self) -> str:
+        """COLMAP camera model name: "PINHOLE", or "OPENCV" with distortion."""
+        return "OPENCV" if any(self.dist) else "PINHOLE"
+
+    @property
     def params(self) -> list[float]:
-        """COLMAP PINHOLE parameters ``[fx, fy, cx, cy]``."""
-        return [float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]), float(self.K[1, 2])]
+        """COLMAP parameters ``[fx, fy, cx, cy]`` (PINHOLE), then ``k1, k2, p1, p2`` (OPENCV)."""
+        k = [float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]), float(self.K[1, 2])]
+        return k + [float(v) for v in self.dist] if any(self.dist) else k
 
     def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project (n, 3) points; returns (n, 2) pixel coordinates and (n,) depths."""
         cam = _rows(np.asarray(xyz, np.float64), self.R.T) + self.t
+        if any(self.dist):
+            import cv2
+
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv, _ = cv2.projectPoints(cam.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.K, np.array(self.dist))
+            return uv.reshape(-1, 2), cam[:, 2]
         uvw = _rows(cam, self.K.T)
         return uvw[:, :2] / uvw[:, 2:3], cam[:, 2]
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         """(n, 3) unit world directions of the rays through (n, 2) pixel coordinates."""
         uv = np.asarray(uv, np.float64)
-        d = _rows(np.column_stack([uv, np.ones(len(uv))]), np.linalg.inv(self.K).T)
+        if any(self.dist):
+            import cv2
+
+            xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), self.K, np.array(self.dist)).reshape(-1, 2)
+            d = np.column_stack([xy, np.ones(len(xy))])
+        else:
+            d = _rows(np.column_stack([uv, np.ones(len(uv))]), np.linalg.inv(self.K).T)
         d = _rows(d, self.R)  # R.T @ d for row vectors
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
@@ -218,6 +239,7 @@ def block_cameras(
     images_per_strip: int = 2,
     side_overlap: float = 0.3,
     seed: int = 0,
+    distortion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
 ) -> tuple[PinholeCamera, ...]:
     """A nadir aerial block: strips of frame images over ``target``, as a survey flies them.
 
@@ -252,6 +274,8 @@ def block_cameras(
     side_overlap : float
         Share of an image's width across the flight that the next strip sees too.
     seed : int
+    distortion : (k1, k2, p1, p2)
+        Lens distortion of every camera (COLMAP's OPENCV model).
 
     Returns
     -------
@@ -288,7 +312,8 @@ def block_cameras(
             center[2] += flying
             angles = rng.uniform(-attitude, attitude, 3)
             R = _rotation(*np.radians(angles)) @ nominal
-            cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), f"s{s + 1}_{k + 1}.png"))
+            name = f"s{s + 1}_{k + 1}.png"
+            cams.append(PinholeCamera(K, R, -R @ center, int(width), int(height), name, tuple(distortion)))
     log.debug("block of %d images: flying height %.1f m, base %.1f m, strip spacing %.1f m",
               len(cams), flying, base, spacing)
     return tuple(cams)

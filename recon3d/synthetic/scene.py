@@ -63,7 +63,7 @@ from recon3d.synthetic.render import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SceneInfo", "city_model", "scene_city", "views", "write_block_scene", "write_colmap", "write_scene"]
+__all__ = ["SceneInfo", "block_city", "city_model", "scene_city", "views", "write_block_scene", "write_colmap", "write_scene"]
 
 #: CityJSON ``referenceDate`` of the truth (fixed, so the file is byte-identical per seed).
 _REFERENCE_DATE = "2024-01-01"
@@ -173,9 +173,7 @@ def write_scene(
 def write_block_scene(folder: str | Path, spec: SceneSpec, *, lighting: Lighting = Lighting()) -> SceneInfo:
     """Render a survey of the family (:class:`~recon3d.synthetic.family.SceneSpec`) to a scene folder.
 
-    The city is a square centred under the block, just large enough to hold every
-    image's ground footprint (its terrain reaches beyond, so every pixel sees ground);
-    the city's terrain, layout and trees follow the spec.
+    The city (:func:`block_city`) follows the spec's terrain, layout and trees.
 
     Parameters
     ----------
@@ -190,6 +188,24 @@ def write_block_scene(folder: str | Path, spec: SceneSpec, *, lighting: Lighting
     """
     timings: dict[str, float] = {}
     start = time.perf_counter()
+    city, cameras = block_city(spec)
+    timings["city"] = time.perf_counter() - start
+    record = {"base_to_height": spec.base_to_height, "spec": spec.to_dict()}
+    return _write(folder, city, cameras, spec.gsd, lighting, spec.n_sparse, 2, record, timings, spec.seed, spec)
+
+
+def scene_city(folder: str | Path) -> SyntheticCity:
+    """The city of a scene folder written by this module, rebuilt from ``truth/scene.json``."""
+    record = json.loads((Path(folder) / "truth" / "scene.json").read_text(encoding="utf-8"))
+    return make_city(**record["city"])
+
+
+def block_city(spec: SceneSpec) -> tuple[SyntheticCity, tuple[PinholeCamera, ...]]:
+    """The city of a survey and its cameras (local coordinates), without rendering.
+
+    The city is a square centred under the block, just large enough to hold every
+    image's ground footprint; its terrain reaches beyond, so every pixel sees ground.
+    """
     nominal = spec.cameras(np.array([0.0, 0.0, 50.0]))
     reach = max(float(np.abs(ground_footprint(c, 50.0)).max()) for c in nominal)
     size = float(math.ceil((2.0 * reach + 10.0) / 10.0) * 10.0)
@@ -200,16 +216,7 @@ def write_block_scene(folder: str | Path, spec: SceneSpec, *, lighting: Lighting
     )
     centre = np.array([size / 2])
     target = np.array([size / 2, size / 2, float(city.terrain.height(centre, centre)[0])])
-    cameras = spec.cameras(target)
-    timings["city"] = time.perf_counter() - start
-    record = {"base_to_height": spec.base_to_height, "spec": spec.to_dict()}
-    return _write(folder, city, cameras, spec.gsd, lighting, spec.n_sparse, 2, record, timings, spec.seed, spec)
-
-
-def scene_city(folder: str | Path) -> SyntheticCity:
-    """The city of a scene folder written by this module, rebuilt from ``truth/scene.json``."""
-    record = json.loads((Path(folder) / "truth" / "scene.json").read_text(encoding="utf-8"))
-    return make_city(**record["city"])
+    return city, spec.cameras(target)
 
 
 def _write(
@@ -282,7 +289,8 @@ def write_colmap(
     *,
     seen: np.ndarray | None = None,
 ) -> None:
-    """Write a COLMAP text model: one PINHOLE camera per image, posed images, 3-D points.
+    """Write a COLMAP text model: one camera per image (PINHOLE, or OPENCV with lens
+    distortion), posed images, 3-D points.
 
     Parameters
     ----------
@@ -303,7 +311,8 @@ def write_colmap(
     rec = pycolmap.Reconstruction()
     for k, cam in enumerate(cameras, start=1):
         camera = pycolmap.Camera(
-            model="PINHOLE", width=cam.width, height=cam.height, params=cam.params, camera_id=k
+            model=getattr(cam, "model", "PINHOLE"), width=cam.width, height=cam.height, params=cam.params,
+            camera_id=k,
         )
         rec.add_camera_with_trivial_rig(camera)
         keypoints = np.asarray(uv[k - 1], np.float64)

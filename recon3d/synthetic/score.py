@@ -4,7 +4,9 @@ The measures of the frame-stereo targets, restricted to the *common area*: the t
 cells whose top surface at least two images have in frame (``truth/views.tif``).
 
 - ``coverage``: share of the common area where the DSM has a value; ``observed``: share
-  where it holds a matched (not filled-in) observation, when the caller knows which.
+  where it holds a matched (not filled-in) observation, when the caller knows which;
+  ``visible``: share whose top surface two images see unhidden (the most matching can
+  observe: the rest is occluded in all but one view).
 - ``dsm_rms_tolerant``: RMS of the DSM error where any height between the lowest and the
   highest truth surface within the product cell counts as exact (a wall crossing a cell
   is no error; a roof spilled onto the street is). The truth range comes from vertical
@@ -43,7 +45,7 @@ def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: i
 
     rows, cols = np.nonzero(cells)
     t = grid.transform
-    off = np.linspace(0.0, 1.0, samples)
+    off = np.linspace(0.0, 1.0, samples) if samples > 1 else np.array([0.5])
     du, dv = (a.ravel() for a in np.meshgrid(off, off))
     lo = np.full(grid.shape, np.nan, np.float32)
     hi = np.full(grid.shape, np.nan, np.float32)
@@ -107,6 +109,7 @@ def score_stereo(
     out["coverage"] = _pct(finite[common])
     if observed is not None:
         out["observed"] = _pct(observed[common])
+    out["visible"] = _visible_share(scene, city, dsm, common)
     lo, hi = truth_range(city, dsm, common & finite)
     exact = _on_grid(read_raster(truth / "dsm.tif"), dsm)
     cells = common & finite & np.isfinite(lo)
@@ -127,6 +130,31 @@ def score_stereo(
     if footprints is not None:
         out.update(_footprint_scores(city, footprints, dsm, common))
     return out
+
+
+def _visible_share(scene, city: SyntheticCity, grid: Raster, common: np.ndarray) -> float:
+    """Percent of the common cells whose top surface at least two cameras see unhidden."""
+    from recon3d.io.colmap import read_scene
+    from recon3d.synthetic.render import visible
+
+    cameras = read_scene(scene).cameras
+    rows, cols = np.nonzero(common)
+    lo, hi = truth_range(city, grid, common, samples=1)  # the cell centre's surface
+    x, y = grid.cell_centers()
+    local = np.column_stack([x[cols], y[rows], hi[rows, cols]]) - np.asarray(city.origin)
+    count = np.zeros(len(local), int)
+    for cam in cameras:
+        # the COLMAP cameras are in model = local coordinates; visible() wants the renderer's convention
+        count += visible(city, _renderer_camera(cam), local, tol=0.05)
+    return _pct(count >= 2)
+
+
+def _renderer_camera(cam):
+    from recon3d.synthetic.render import PinholeCamera
+
+    K = cam.K.copy()
+    K[:2, 2] += 0.5  # OpenCV to COLMAP pixel centres
+    return PinholeCamera(K, cam.R, cam.t, cam.width, cam.height, cam.name, tuple(cam.dist[:4]))
 
 
 def _footprint_scores(city: SyntheticCity, detected: list, grid: Raster, common: np.ndarray) -> dict:

@@ -200,7 +200,7 @@ def fill_small_holes(
         order = np.lexsort((values[on], rim_labels[on]))  # by hole, then height
         val = values[on][order]
         start = np.concatenate([[0, 0], np.cumsum(counts[1:])])[: n + 1]  # first rim value of each hole in val
-        pick = np.clip(start + np.maximum(counts - 1, 0) // 10, 0, max(len(val) - 1, 0))
+        pick = np.clip(start + np.maximum(counts - 1, 0) // 4, 0, max(len(val) - 1, 0))
         fills = np.where(counts > 0, val[pick] if len(val) else np.nan, np.nan)
     else:
         sums = np.bincount(rim_labels, weights=values, minlength=n + 1)
