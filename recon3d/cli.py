@@ -56,12 +56,13 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--gcps", type=click.Path(path_type=Path), help="Ground control points (CSV x,y,z in the output CRS) for a satellite pair's absolute bias.")
 @click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
 @click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
+@click.option("--dem", type=click.Path(path_type=Path), help="Coarse elevation model (GeoTIFF) bounding the heights a frame-stereo scene is matched in.")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.option("--workers", type=click.IntRange(min=1), help="Processes building the solids  [default: the CPUs available, from 32 buildings on]; the output does not depend on it.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, config_path, overwrite, workers, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
     or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
 
@@ -97,6 +98,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
             checkpoints=checkpoints,
             breaklines=breaklines,
             altimetry=altimetry,
+            dem=dem,
             old_buildings=old_buildings,
             gcps=gcps,
             config=config,

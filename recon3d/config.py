@@ -53,6 +53,18 @@ class StereoConfig:
         Satellite pairs: largest tile (px of the reference image, at least 128) rectified
         with its own local affine camera approximation; None: one tile up to 1024 px,
         800 px tiles beyond.
+    vectors : bool
+        Frame stereo: bound the matching by what the user gave (``--dem``, spot heights
+        and breaklines, footprints with roof heights), see :mod:`recon3d.stereo.constraints`.
+    dem_tolerance : float
+        Metres the surface may lie below the ``--dem``.
+    roof_tolerance : float
+        Metres of slack around the footprints' roof heights and inside their outlines.
+    footprint_weight : float
+        How firmly roof heights bound the matching, 0 (not at all) to 1 (never crossed).
+    max_object_height : float or None
+        Metres the tallest object stands above the ``--dem``; None: measured on the
+        sparse points (their highest above the DEM, plus 10 m).
     """
 
     max_disparities: int = 384
@@ -60,12 +72,23 @@ class StereoConfig:
     min_angle: float = 1.0
     max_parallax: float = 1.0
     tile_size: int | None = None
+    vectors: bool = True
+    dem_tolerance: float = 2.0
+    roof_tolerance: float = 1.0
+    footprint_weight: float = 0.5
+    max_object_height: float | None = None
 
     def __post_init__(self) -> None:
         if self.engine not in ("census", "sgbm"):
             raise InputError(f"stereo.engine {self.engine!r}: \"census\" or \"sgbm\"")
         if self.max_disparities < 16:
             raise InputError(f"stereo.max_disparities {self.max_disparities}: at least 16")
+        if self.dem_tolerance < 0 or self.roof_tolerance < 0:
+            raise InputError("stereo.dem_tolerance and stereo.roof_tolerance must be >= 0")
+        if not 0.0 <= self.footprint_weight <= 1.0:
+            raise InputError(f"stereo.footprint_weight {self.footprint_weight}: between 0 and 1")
+        if self.max_object_height is not None and self.max_object_height <= 0:
+            raise InputError(f"stereo.max_object_height {self.max_object_height}: must be > 0")
         if self.tile_size is not None and self.tile_size < 128:
             raise InputError(f"stereo.tile_size {self.tile_size}: at least 128 px (or unset for automatic)")
 

@@ -11,8 +11,9 @@ degrees when the base runs along the columns), and scores both against the truth
     .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
     .venv/bin/python scripts/bench_frame_stereo.py --only nadir_pair --vectors
 
-``--vectors`` also runs recon3d with the truth footprints (roof heights) and spot heights
-as matching constraints (vector-constrained matching), to measure their gain.
+``--vectors`` also runs recon3d with the truth footprints (eave and ridge heights), the
+spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
+matching), to measure their gain; the footprints then also give the building outlines.
 """
 
 from __future__ import annotations
@@ -114,7 +115,8 @@ def bench_one(spec, tmp: Path, *, vectors: bool) -> dict:
            "render_s": round(render, 1), "spec": spec.to_dict()}
     runs = {"recon3d": {}}
     if vectors:
-        runs["recon3d+vectors"] = {"footprints": truth / "footprints.geojson"}
+        runs["recon3d+vectors"] = {"footprints": truth / "footprints.geojson", "altimetry": truth / "spot_heights.csv",
+                                   "dem": truth / "coarse_dem.tif"}
     for name, extra in runs.items():
         t = time.perf_counter()
         try:

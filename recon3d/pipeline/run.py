@@ -62,6 +62,7 @@ class RunState:
     checkpoints_path: Path | None = None
     breaklines_path: Path | None = None
     altimetry_path: Path | None = None
+    dem_path: Path | None = None
     truth_dsm_path: Path | None = None
     old_buildings_path: Path | None = None
     gcps_path: Path | None = None
@@ -71,6 +72,8 @@ class RunState:
     old_buildings: list | None = None
     changes: Any = None
     constraints: np.ndarray | None = None
+    dem: Raster | None = None
+    vectors_read: bool = False
     scene: Any = None
     satellite_paths: tuple[Path, Path] | None = None
     cloud: PointCloud | None = None
@@ -81,6 +84,7 @@ class RunState:
     dsm: Raster | None = None
     dsm_unobserved: np.ndarray | None = None  # stereo: DSM cells holding no observed point
     common_area: np.ndarray | None = None  # frame stereo: DSM cells two matched images both see
+    dsm_extent: tuple | None = None  # the DSM grid's area when not the cloud's bounds
     dsm_consistent: np.ndarray | None = None  # stereo: DSM cells holding a guess the images agree with
     reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
@@ -116,6 +120,7 @@ def run(
     checkpoints: str | Path | None = None,
     breaklines: str | Path | None = None,
     altimetry: str | Path | None = None,
+    dem: str | Path | None = None,
     truth_dsm: str | Path | None = None,
     old_buildings: str | Path | None = None,
     gcps: str | Path | None = None,
@@ -139,7 +144,9 @@ def run(
         Building outlines to use instead of detection; reference heights to check against.
     breaklines, altimetry : path-like, optional
         3-D lines (roads, water edges) and spot heights (vector file, or CSV x,y,z for
-        altimetry) the DTM must honour.
+        altimetry) the DTM must honour; frame stereo also matches within them.
+    dem : path-like, optional
+        A coarse elevation model (GeoTIFF) that bounds the heights frame stereo searches.
     truth_dsm : path-like, optional
         A reference DSM (GeoTIFF) the DSM is compared with cell by cell.
     gcps : path-like, optional
@@ -191,6 +198,7 @@ def run(
         checkpoints_path=Path(checkpoints) if checkpoints else None,
         breaklines_path=Path(breaklines) if breaklines else None,
         altimetry_path=Path(altimetry) if altimetry else None,
+        dem_path=Path(dem) if dem else None,
         truth_dsm_path=Path(truth_dsm) if truth_dsm else None,
         old_buildings_path=Path(old_buildings) if old_buildings else None,
         gcps_path=Path(gcps) if gcps else None,
@@ -236,6 +244,8 @@ def read_inputs(s: RunState) -> None:
     elif is_scene_folder(s.input_path):
         s.scene = read_scene(s.input_path, crs=s.crs)
         s.units = crs_units(s.scene.crs, source=str(s.input_path))
+        world = s.scene.sparse + s.scene.offset
+        _read_vectors(s, s.scene.crs, (world.min(axis=0), world.max(axis=0)))  # before matching, which uses them
     elif suffix in (".las", ".laz"):
         s.cloud = read_las(s.input_path, crs=s.crs)
         s.reference_date = las_date(s.input_path)
@@ -251,6 +261,8 @@ def read_inputs(s: RunState) -> None:
         raise InputError(
             f"{s.input_path}: unsupported input (expected .las, .laz, .ply or a folder with images/ and sparse/)"
         )
+    if s.dem_path and (s.scene is None or s.satellite_paths is not None):
+        raise InputError(f"{s.dem_path}: --dem bounds the matching of a frame-stereo scene; {s.input_path} is not one")
     if s.cloud is not None:
         _read_side_inputs(s)
 
@@ -262,9 +274,14 @@ def match_stereo(s: RunState) -> None:
     if s.satellite_paths is not None:
         s.cloud, s.auto["stereo"] = _satellite_cloud(s)
     else:
-        from recon3d.pipeline.stereo import dense_cloud
+        from recon3d.pipeline.stereo import dense_cloud, matching_constraints
 
-        s.cloud, s.auto["stereo"] = dense_cloud(s.scene, s.config.stereo, warn=s.warn, progress=s.progress)
+        bounds = matching_constraints(
+            s.scene, s.config.stereo, s.units, dem=s.dem, footprints=s.footprints, constraints=s.constraints,
+        )
+        s.cloud, s.auto["stereo"] = dense_cloud(
+            s.scene, s.config.stereo, bounds=bounds, warn=s.warn, progress=s.progress,
+        )
     _read_side_inputs(s)
 
 
@@ -299,20 +316,32 @@ def _read_side_inputs(s: RunState) -> None:
     s.units = crs_units(s.cloud.crs, source=str(s.input_path))
     if s.cloud.has_classes():
         s.reference_classes = s.cloud.classification.copy()
-    if s.footprints_path:
-        s.footprints, notes = vectors.read_footprints(s.footprints_path, crs=s.cloud.crs)
-        s.notes += notes
-        _check_overlap(s)
-    if s.checkpoints_path:
-        s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
-    if s.old_buildings_path:
-        s.old_buildings, notes = vectors.read_footprints(s.old_buildings_path, crs=s.cloud.crs)
-        s.notes += notes
-    s.constraints = _read_constraints(s)
+    if not s.vectors_read:  # frame stereo read them before matching
+        _read_vectors(s, s.cloud.crs, s.cloud.bounds)
     s.work_dir.mkdir(parents=True, exist_ok=True)
 
 
-def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int, area=None) -> Raster:
+def _read_vectors(s: RunState, crs: pyproj.CRS, bounds: tuple[np.ndarray, np.ndarray]) -> None:
+    """Footprints, check points, old buildings, terrain constraints and the DEM, in ``crs``;
+    ``bounds`` (lowest, highest corner) is the extent the footprints must overlap."""
+    s.vectors_read = True
+    if s.footprints_path:
+        s.footprints, notes = vectors.read_footprints(s.footprints_path, crs=crs)
+        s.notes += notes
+        _check_overlap(s, bounds, crs)
+    if s.checkpoints_path:
+        s.checkpoints = checkpoints_io.read_checkpoints(s.checkpoints_path)
+    if s.old_buildings_path:
+        s.old_buildings, notes = vectors.read_footprints(s.old_buildings_path, crs=crs)
+        s.notes += notes
+    s.constraints = _read_constraints(s, crs)
+    if s.dem_path:
+        from recon3d.io.geotiff import read_dem
+
+        s.dem = read_dem(s.dem_path, crs=crs, bounds=bounds)
+
+
+def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int, area=None, extent=None) -> Raster:
     """The DSM of ``cloud`` (the run's cloud, or one with the same points and other
     heights) gridded the way this run grids its DSM."""
     stereo = s.scene is not None  # frame or satellite stereo
@@ -321,6 +350,7 @@ def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int
     return dsm_stage.make_dsm(
         cloud, res, max_hole_cells=max_hole_cells, rim="low" if stereo else "mean",
         observed=observed, source=a.get("point_source_id") if observed is not None else None, area=area,
+        extent=extent,
     )
 
 
@@ -351,8 +381,15 @@ def make_dsm(s: RunState) -> None:
         s.common_area = _common_area(s, raw)
         return s.common_area
 
+    # frame stereo: the grid spans the sparse points too, so a part of the common area the
+    # matching lost shows as empty cells rather than as a smaller grid
+    extent = None
+    if frame_stereo:
+        world = s.scene.sparse + s.scene.offset
+        extent = (np.minimum(s.cloud.bounds[0], world.min(axis=0)), np.maximum(s.cloud.bounds[1], world.max(axis=0)))
+    s.dsm_extent = extent
     s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2),
-                      area=common_area if frame_stereo else None)
+                      area=common_area if frame_stereo else None, extent=extent)
     gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
     s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
@@ -692,7 +729,7 @@ def model_scan(s: RunState) -> Raster:
     xyz = s.cloud.xyz
     z = surface_at(s.city, xyz[:, 0], xyz[:, 1], s.dtm)
     scanned = PointCloud(np.column_stack([xyz[:, :2], z]), s.cloud.attributes, s.cloud.crs)
-    return _grid_dsm(s, scanned, s.dsm.resolution, max_hole_cells=0)
+    return _grid_dsm(s, scanned, s.dsm.resolution, max_hole_cells=0, extent=s.dsm_extent)
 
 
 def model_check_cells(s: RunState) -> np.ndarray:
@@ -777,30 +814,31 @@ STAGES: list[tuple[str, Callable[[RunState], None]]] = [
 # --------------------------------------------------------------------------- helpers
 
 
-def _check_overlap(s: RunState) -> None:
-    lo, hi = s.cloud.bounds
+def _check_overlap(s: RunState, bounds, crs: pyproj.CRS) -> None:
+    lo, hi = bounds
     import shapely
 
     box = shapely.box(lo[0], lo[1], hi[0], hi[1])
+    what = "the point cloud" if s.scene is None else "the scene's sparse points"
     if not any(f.polygon.intersects(box) for f in s.footprints):
         raise InputError(
-            f"{s.footprints_path}: none of the {len(s.footprints)} footprints overlaps the point cloud "
-            f"(cloud extent {lo[0]:.1f},{lo[1]:.1f} - {hi[0]:.1f},{hi[1]:.1f} in {crs_name(s.cloud.crs)}); "
+            f"{s.footprints_path}: none of the {len(s.footprints)} footprints overlaps {what} "
+            f"(extent {lo[0]:.1f},{lo[1]:.1f} - {hi[0]:.1f},{hi[1]:.1f} in {crs_name(crs)}); "
             "check the footprints' CRS"
         )
 
 
-def _read_constraints(s: RunState) -> tuple[list[np.ndarray], np.ndarray] | None:
+def _read_constraints(s: RunState, crs: pyproj.CRS) -> tuple[list[np.ndarray], np.ndarray] | None:
     """Breaklines and spot heights for the DTM, or None when neither was given."""
     lines, points = [], np.zeros((0, 3))
     if s.breaklines_path:
-        lines, more = vectors.read_terrain_vectors(s.breaklines_path, crs=s.cloud.crs)
+        lines, more = vectors.read_terrain_vectors(s.breaklines_path, crs=crs)
         points = np.concatenate([points, more])
     if s.altimetry_path:
         if s.altimetry_path.suffix.lower() == ".csv":
             more = checkpoints_io.read_checkpoints(s.altimetry_path).xyz
         else:
-            more_lines, more = vectors.read_terrain_vectors(s.altimetry_path, crs=s.cloud.crs)
+            more_lines, more = vectors.read_terrain_vectors(s.altimetry_path, crs=crs)
             lines += more_lines
         points = np.concatenate([points, more])
     if not lines and not len(points):
@@ -854,6 +892,7 @@ def _run_record(s: RunState) -> dict:
             "checkpoints": str(s.checkpoints_path) if s.checkpoints_path else None,
             "breaklines": str(s.breaklines_path) if s.breaklines_path else None,
             "altimetry": str(s.altimetry_path) if s.altimetry_path else None,
+            "dem": str(s.dem_path) if s.dem_path else None,
             "old_buildings": str(s.old_buildings_path) if s.old_buildings_path else None,
             "gcps": str(s.gcps_path) if s.gcps_path else None,
         },

@@ -19,7 +19,7 @@ from recon3d.stereo.triangulate import triangulate
 
 log = logging.getLogger(__name__)
 
-__all__ = ["dense_cloud"]
+__all__ = ["dense_cloud", "matching_constraints"]
 
 
 def dense_cloud(
@@ -60,6 +60,8 @@ def dense_cloud(
     warn = warn or log.warning
     pairs, candidates = select_pairs(scene.cameras, scene.sparse, scene.seen)
     report = {"candidates": candidates, "pairs": []}
+    if bounds is not None:
+        report["constraints"] = getattr(bounds, "sources", {})
     clouds = []
     for k, (i, j) in enumerate(pairs):
         if progress:
@@ -84,6 +86,65 @@ def dense_cloud(
     report["ground_sample_distance"] = round(gsd, 4)
     report["points"] = len(cloud)
     return cloud, report
+
+
+def matching_constraints(scene: StereoScene, config: StereoConfig, units, *, dem=None, footprints=None,
+                         constraints=None):
+    """The per-pixel disparity bounds for :func:`dense_cloud` from the user's vectors and
+    DEM (:mod:`recon3d.stereo.constraints`), or None when none was given (or
+    ``config.vectors`` is off).
+
+    Returns
+    -------
+    callable or None
+        ``bounds(pair)`` -> (low, high, weight) per rectified left pixel; its ``sources``
+        attribute says what went in, for run.json.
+    """
+    from recon3d.terrain.dtm import densify_lines
+    from recon3d.stereo.constraints import elevation_bounds, pair_bounds, roof_range
+
+    if not config.vectors:
+        return None
+    ground = np.zeros((0, 3))
+    if constraints is not None:
+        lines, points = constraints
+        ground = np.concatenate([densify_lines(lines, units.length(1.0)), points]) if lines else points
+    roofs = [(f.polygon, *roof_range(f.attributes)) for f in footprints or []]
+    roofs = [r for r in roofs if r[1] is not None or r[2] is not None]
+    if dem is None and len(ground) < 3 and not roofs:
+        return None
+    world = scene.sparse + scene.offset
+    lo, hi = world.min(axis=0), world.max(axis=0)
+    pad = 0.5 * (hi[:2] - lo[:2]) + units.length(20.0)
+    extent = (lo[0] - pad[0], lo[1] - pad[1], hi[0] + pad[0], hi[1] + pad[1])
+    tallest, why = _tallest_object(world, dem, config, units)
+    bounds = elevation_bounds(
+        extent, units.length(1.0), dem=dem, dem_tolerance=units.height(config.dem_tolerance),
+        max_object_height=tallest, ground_points=ground if len(ground) >= 3 else None,
+        ground_tolerance=units.height(0.5), footprints=roofs, roof_tolerance=units.length(config.roof_tolerance),
+        footprint_weight=config.footprint_weight,
+    )
+    tops = [r[2] for r in roofs if r[2] is not None]
+    z_range = (float(lo[2]) - units.height(30.0), max([float(hi[2]), *tops]) + units.height(30.0))
+
+    def pixel_bounds(pair: RectifiedPair):
+        return pair_bounds(pair, bounds, scene.offset, z_range)
+
+    pixel_bounds.sources = {**bounds.sources, "max_object_height": {"value": round(tallest, 2), "reason": why}}
+    return pixel_bounds
+
+
+def _tallest_object(world: np.ndarray, dem, config: StereoConfig, units) -> tuple[float, str]:
+    """Height of the tallest object above the DEM (CRS height units) and why."""
+    if config.max_object_height is not None:
+        return units.height(config.max_object_height), "config"
+    if dem is None:
+        return units.height(40.0), "no DEM"
+    above = world[:, 2] - dem.sample(world[:, 0], world[:, 1])
+    above = above[np.isfinite(above)]
+    if not above.size:
+        return units.height(40.0), "no sparse point over the DEM: 40 m"
+    return float(above.max()) + units.height(10.0), f"highest sparse point {above.max():.1f} above the DEM, plus 10 m"
 
 
 def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, dict]:

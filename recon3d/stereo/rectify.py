@@ -81,6 +81,11 @@ class RectifiedPair:
     range_reason : str
     parallax : dict
         Residual vertical parallax of feature matches: median, p90, count (pixels).
+    resampled : dict
+        Where the rectified pixels were sampled from in the originals, every ``"step"``
+        pixels (``"left"``, ``"right"``: (rows, cols, 2) float64), fixed when the images
+        were resampled: :meth:`to_original` reads it, so a later change of the pair's
+        parameters shows as a reprojection error instead of passing unseen.
     """
 
     left: np.ndarray
@@ -99,6 +104,7 @@ class RectifiedPair:
     disparity_range: tuple[int, int] = (0, 1)
     range_reason: str = ""
     parallax: dict = field(default_factory=dict)
+    resampled: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -169,9 +175,20 @@ class RectifiedPair:
     def to_original(self, xy: np.ndarray, *, right: bool = False) -> np.ndarray:
         """(n, 2) pixel coordinates in the original (distorted) image of rectified pixels (n, 2).
 
-        The same mapping the images were resampled with (``cv2.initUndistortRectifyMap``),
-        computed point by point.
+        The mapping the images were resampled with (``cv2.initUndistortRectifyMap``),
+        interpolated from :attr:`resampled` (within 0.001 px), or computed from the
+        pair's parameters when the pair was built by hand.
         """
+        grid = self.resampled.get("right" if right else "left")
+        if grid is None:
+            return self._project_to_original(xy, right=right)
+        from scipy.ndimage import map_coordinates
+
+        q = np.asarray(xy, np.float64) / self.resampled["step"]
+        coords = [q[:, 1], q[:, 0]]
+        return np.column_stack([map_coordinates(grid[..., k], coords, order=1, mode="nearest") for k in (0, 1)])
+
+    def _project_to_original(self, xy: np.ndarray, *, right: bool = False) -> np.ndarray:
         cam = self.camera_right if right else self.camera_left
         cx = self.cx_right if right else self.cx_left
         xy = np.asarray(xy, np.float64)
@@ -179,6 +196,16 @@ class RectifiedPair:
         in_camera = rays @ (self.R2 if right else self.R1)  # rectified to camera frame
         uv, _ = cv2.projectPoints(in_camera.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), cam.K, cam.dist)
         return uv.reshape(-1, 2)
+
+    def freeze_resampling(self, step: int = 8) -> None:
+        """Record :attr:`resampled` from the current parameters (when the images are resampled)."""
+        h, w = self.left.shape
+        gy, gx = np.meshgrid(np.arange(0, h + step, step, dtype=np.float64), np.arange(0, w + step, step, dtype=np.float64), indexing="ij")
+        xy = np.column_stack([gx.ravel(), gy.ravel()])
+        self.resampled = {"step": step} | {
+            side: self._project_to_original(xy, right=side == "right").reshape(*gx.shape, 2)
+            for side in ("left", "right")
+        }
 
 
 # --------------------------------------------------------------------------- pairs
@@ -331,6 +358,7 @@ def rectify_pair(
         left, right, color, valid_left, valid_right, a, b, rotation, focal, cx_left, cx_right, cy, baseline,
         (d_lo, d_hi), reason,
     )
+    pair.freeze_resampling()
     pair.parallax = measure_parallax(left, right)
     log.info(
         "%s rectified to %d x %d px (originals %d x %d, %d x %d); disparities [%d, %d), shift %d px",

@@ -12,6 +12,9 @@ Layout (the input part is what ``recon3d run`` reads; ``truth/`` is for evaluati
     truth/checkpoints.csv                x,y,z,id,kind (ground, roof), world coordinates
     truth/trees.csv                      x,y,ground_z,top_z,crown_radius,crown,id
     truth/views.tif                      how many images see each cell's top surface point
+    truth/coarse_dem.tif                 the terrain on 20 m cells with 0.5 m of noise (a
+                                         national DTM's kind), for vector-constrained matching
+    truth/spot_heights.csv               x,y,z of surveyed ground points on a 50 m grid
     truth/scene.json                     parameters of the scene (seed, gsd, cameras...)
 
 :func:`write_scene` renders the demo's kind of scene: a city that fits in every image,
@@ -409,6 +412,10 @@ def _write_truth(folder: Path, city: SyntheticCity, cell: float, cameras) -> Non
     title = f"recon3d synthetic city, seed {city.seed} (truth)"
     meta = {"title": title, "referenceDate": _REFERENCE_DATE}
     write_cityjson(city_model(city), folder / "buildings.city.json", metadata=meta)
+    _write_dem(folder / "coarse_dem.tif", city, crs, tags)
+    spots, _, _ = checkpoints(city, spacing=50.0)
+    rows = ["x,y,z"] + [f"{p[0]:.4f},{p[1]:.4f},{p[2]:.4f}" for p in spots[: len(spots) - len(city.buildings)]]
+    _write_text(folder / "spot_heights.csv", "\n".join(rows) + "\n")
     xyz, ids, kinds = checkpoints(city)
     rows = ["x,y,z,id,kind"] + [
         f"{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{i},{k}"
@@ -422,6 +429,18 @@ def _write_truth(folder: Path, city: SyntheticCity, cell: float, cameras) -> Non
         for t in city.trees
     ]
     _write_text(folder / "trees.csv", "\n".join(rows) + "\n")
+
+
+def _write_dem(path: Path, city: SyntheticCity, crs, tags: dict) -> None:
+    """The terrain on 20 m cells over the city and its margin, with 0.5 m of Gaussian noise."""
+    from recon3d.io.geotiff import write_raster
+
+    margin = min(-city.terrain.x0, 200.0)
+    west, south, east, north = city.bounds()
+    transform, shape = grid_for_bounds(west - margin, south - margin, east + margin, north + margin, 20.0)
+    rng = np.random.default_rng(np.random.SeedSequence([int(city.seed), 50]))
+    dem = truth_dtm(city, transform, shape) + rng.normal(0.0, 0.5, shape).astype(np.float32)
+    write_raster(Raster(dem, transform, crs, {**tags, "product": "coarse DEM (20 m, 0.5 m noise)"}), path)
 
 
 def _scene_record(city, cameras, gsd, cell, lighting, n_sparse) -> dict:

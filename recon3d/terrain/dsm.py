@@ -225,6 +225,7 @@ def make_dsm(
     observed: np.ndarray | None = None,
     source: np.ndarray | None = None,
     area=None,
+    extent: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
@@ -232,11 +233,12 @@ def make_dsm(
     With ``observed`` (and ``source``), per-point (n,) arrays of a stereo cloud, the
     cells are gridded by :func:`grid_stereo`. ``area(raster)``, given the DSM before
     hole filling, returns the (rows, cols) bool cells the data should cover (see
-    :func:`fill_small_holes`).
+    :func:`fill_small_holes`). ``extent`` (lowest, highest corner) replaces the cloud's
+    bounds as the area of the grid.
     """
     keep = surface_points(cloud)
     xyz = cloud.xyz[keep]
-    lo, hi = cloud.bounds
+    lo, hi = cloud.bounds if extent is None else extent
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
     if observed is None:
         dsm, method = grid_points(xyz, transform, shape, reducer="max"), "highest point per cell"

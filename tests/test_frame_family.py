@@ -1,0 +1,300 @@
+"""Frame stereo end to end on surveys of the synthetic family, the self-check, the
+vector constraints and the bad inputs of a scene folder.
+
+The surveys are the named corner cases of :mod:`recon3d.synthetic.family` at 400 px
+(their geometry, smaller images), scored against their exact truth inside the area two
+images see (:mod:`recon3d.synthetic.score`). Measured at this size (scripts/
+bench_frame_stereo.py --width 400; plain OpenCV rectify + SGBM on the same images in
+brackets): common area filled 93-100 % (50-94 %), tolerant DSM RMS 0.4-2.0 m (0.9-5 m),
+footprint area completeness 68-100 %, ground check points 0.04-0.25 m on the DTM.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from recon3d.cli import cli
+from recon3d.errors import InputError
+from recon3d.synthetic.family import CONFIGURATIONS
+from recon3d.synthetic.scene import write_block_scene
+from recon3d.synthetic.score import score_stereo
+
+WIDTH = 400
+
+#: Per survey: least common-area coverage (%), largest tolerant DSM RMS (m), least
+#: footprint completeness and correctness (%), measured minus a margin. wide_base
+#: (B/H 1.0) sees a third of its common area in one image only; portrait_wide has
+#: dense lots with trees over the roofs.
+TARGETS = {
+    "nadir_pair": (98.0, 0.8, 95.0, 88.0),
+    "heading_180": (94.0, 1.1, 95.0, 88.0),
+    "portrait_wide": (92.0, 2.4, 92.0, 84.0),
+    "block_2x3": (97.0, 1.2, 92.0, 78.0),
+}
+
+
+@pytest.fixture(scope="module")
+def surveys(tmp_path_factory):
+    """name -> (scene folder, run state), run once for the module."""
+    from recon3d.pipeline.run import run
+
+    out = {}
+    for name in TARGETS:
+        folder = tmp_path_factory.mktemp(name) / "scene"
+        write_block_scene(folder, CONFIGURATIONS[name].with_width(WIDTH))
+        state = run(folder, folder.parent / "out", checkpoints=folder / "truth" / "checkpoints.csv")
+        out[name] = (folder, state)
+    return out
+
+
+def _score(folder, state):
+    observed = ~state.dsm_filled & np.isfinite(state.dsm.data)
+    if state.dsm_unobserved is not None:
+        observed &= ~state.dsm_unobserved
+    return score_stereo(folder, state.dsm, dtm=state.dtm, footprints=[b.footprint for b in state.city], observed=observed)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(TARGETS))
+def test_survey_against_truth(surveys, name):
+    folder, state = surveys[name]
+    coverage, rms, completeness, correctness = TARGETS[name]
+    score = _score(folder, state)
+    assert score["coverage"] >= coverage, score
+    assert score["dsm_rms_tolerant"] <= rms, score
+    assert score["dsm_within_1m"] >= 93.0, score
+    assert score["ground_rms"] <= 0.3, score
+    assert score["footprint_completeness"] >= completeness, score
+    assert score["footprint_correctness"] >= correctness, score
+    # the product's own view of the common area agrees with the truth's (its area leaves
+    # out the image borders and the ground a roof at the border hides: it fills more of it)
+    assert 0.0 <= state.auto["stereo"]["common_area"]["filled_percent"] - score["coverage"] <= 8.0
+
+
+@pytest.mark.slow
+def test_block_fuses_every_pair(surveys):
+    """The 2 x 3 block: every overlapping pair is matched, checked and fused, and each
+    one's share of the fused cloud is in run.json."""
+    _, state = surveys["block_2x3"]
+    pairs = state.auto["stereo"]["pairs"]
+    assert state.auto["stereo"]["pair_count"] == len(pairs) >= 7
+    across = [p for p in pairs if p["images"][0][:2] != p["images"][1][:2]]
+    assert across, "pairs across the two strips"
+    assert sum(p["points_fused"] for p in pairs) == len(state.cloud)
+    assert all(p["self_check"]["coverage_percent"] >= 90.0 for p in pairs)
+    assert all(p["self_check"]["discrepancy_gsd"] <= 0.5 for p in pairs)
+    record = json.loads((state.out_dir / "run.json").read_text())
+    assert record["chosen"]["stereo"]["pairs"][0]["fused_share_percent"] > 0
+
+
+def test_self_check_figures(surveys):
+    """The dense result agrees with the COLMAP model's own sparse points."""
+    _, state = surveys["nadir_pair"]
+    check = state.auto["stereo"]["pairs"][0]["self_check"]
+    assert check["sparse_points"] >= 250
+    assert check["coverage_percent"] >= 95.0
+    assert check["discrepancy_gsd"] <= 0.5 and check["disparity_error_px"] <= 0.2
+    assert check["reprojection_px"] <= 0.01
+    assert not state.warnings
+
+
+# --------------------------------------------------------------------------- self-check failures
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("small") / "scene"
+    write_block_scene(folder, CONFIGURATIONS["nadir_pair"].with_width(320))
+    return folder
+
+
+def _copy(scene, tmp_path):
+    dst = tmp_path / "scene"
+    shutil.copytree(scene, dst)
+    return dst
+
+
+def _fails(args, tmp_path, *needles):
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["-q", "run", *map(str, args), "-o", str(out)])
+    assert result.exit_code == 1, result.output
+    for n in needles:
+        assert n in result.output, result.output
+    assert not out.exists()
+    assert not list(tmp_path.glob(".out.partial-*"))
+
+
+def test_sparse_points_that_contradict_the_images_stop_the_run(small_scene, tmp_path):
+    """A model whose points sit 3 m above where the images put them (a wrong scale or
+    datum in the reconstruction): exit 1, the pair and the discrepancy named."""
+    import pycolmap
+
+    folder = _copy(small_scene, tmp_path)
+    rec = pycolmap.Reconstruction(str(folder / "sparse"))
+    for point in rec.points3D.values():
+        point.xyz = point.xyz + np.array([0.0, 0.0, 3.0])
+    rec.write_text(str(folder / "sparse"))
+    _fails([folder], tmp_path, "s1_1.png-s1_2.png", "sparse points", "ground sample distances")
+
+
+def test_lost_coverage_is_a_warning_naming_the_area(small_scene, tmp_path, monkeypatch):
+    """Matching that leaves half the common area empty (here a matcher made to fail on
+    the right half) warns on the terminal, in run.json and in report.json."""
+    import recon3d.stereo.match as match_module
+
+    original = match_module.match
+
+    def half_blind(left, right, params, **kw):
+        result = original(left, right, params, **kw)
+        w = result.disparity.shape[1]
+        result.disparity[:, w // 2:] = np.nan
+        result.filled[:, w // 2:] = False
+        return result
+
+    monkeypatch.setattr(match_module, "match", half_blind)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["run", str(small_scene), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "sparse points both images observe" in result.output and "WARNING" in result.output
+    record = json.loads((out / "run.json").read_text())
+    report = json.loads((out / "report.json").read_text())
+    assert any("covers" in w and "(x " in w for w in record["warnings"]), record["warnings"]
+    assert record["warnings"] == report["warnings"]
+    assert any("the DSM fills" in w for w in record["warnings"])
+    assert record["chosen"]["stereo"]["pairs"][0]["self_check"]["coverage_percent"] < 70
+
+
+def test_reprojection_check_catches_an_inconsistent_rectification(small_scene):
+    from recon3d.io.colmap import read_scene
+    from recon3d.stereo.check import check_pair, verdict
+    from recon3d.stereo.match import MatchParams, match
+    from recon3d.stereo.rectify import rectify_pair
+
+    s = read_scene(small_scene)
+    a, b = s.cameras
+    points = s.sparse[s.seen[0] & s.seen[1]]
+    pair = rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)), points)
+    left = np.where(pair.valid_left, pair.left, np.nan).astype(np.float32)
+    right = np.where(pair.valid_right, pair.right, np.nan).astype(np.float32)
+    lo, hi = pair.disparity_range
+    result = match(left, right, MatchParams(min_disparity=lo, max_disparity=hi))
+    matched = ~result.filled & np.isfinite(result.disparity)
+    good = check_pair(pair, result.disparity, matched, points)
+    assert good["reprojection_px"] < 0.01 and verdict(pair.name, good) is None
+    pair.cx_right += 3.0  # triangulation no longer matches how the right image was resampled
+    with pytest.raises(InputError, match="reproject"):
+        verdict(pair.name, check_pair(pair, result.disparity, matched, points))
+
+
+# --------------------------------------------------------------------------- vector constraints
+
+
+def test_bounds_from_vectors_hold_the_exact_disparities(small_scene):
+    """DEM, spot heights and footprints with roof heights give per-pixel bounds that
+    contain the exact disparity almost everywhere and are tight inside roofs."""
+    from recon3d.config import StereoConfig
+    from recon3d.core.geo import crs_units
+    from recon3d.io.checkpoints import read_checkpoints
+    from recon3d.io.colmap import read_scene
+    from recon3d.io.geotiff import read_dem
+    from recon3d.io.vectors import read_footprints
+    from recon3d.pipeline.stereo import matching_constraints
+    from recon3d.stereo.rectify import rectify_pair
+    from recon3d.synthetic.city import truth_disparity
+    from recon3d.synthetic.scene import scene_city
+
+    s = read_scene(small_scene)
+    truth = small_scene / "truth"
+    world = s.sparse + s.offset
+    footprints, _ = read_footprints(truth / "footprints.geojson", crs=s.crs)
+    bounds = matching_constraints(
+        s, StereoConfig(), crs_units(s.crs), footprints=footprints,
+        dem=read_dem(truth / "coarse_dem.tif", crs=s.crs, bounds=(world.min(axis=0), world.max(axis=0))),
+        constraints=([], read_checkpoints(truth / "spot_heights.csv").xyz),
+    )
+    assert set(bounds.sources) >= {"dem", "ground_points", "footprints"}
+    a, b = s.cameras
+    pair = rectify_pair(a, b, cv2.imread(str(a.image_path)), cv2.imread(str(b.image_path)), world - s.offset)
+    low, high, weight = bounds(pair)
+    exact = truth_disparity(scene_city(small_scene), pair, s.offset)
+    valid = pair.valid_left & np.isfinite(exact)
+    inside = ~(exact < low - 0.5) & ~(exact > high + 0.5)
+    assert inside[valid].mean() >= 0.995
+    on_roofs = valid & (weight < 1.0)  # the footprints' (soft) bounds
+    assert on_roofs.sum() > 500
+    dem_only = matching_constraints(
+        s, StereoConfig(), crs_units(s.crs),
+        dem=read_dem(truth / "coarse_dem.tif", crs=s.crs, bounds=(world.min(axis=0), world.max(axis=0))),
+    )
+    low_dem, high_dem, _ = dem_only(pair)
+    assert np.median((high - low)[on_roofs]) < 0.7 * np.median((high_dem - low_dem)[on_roofs])
+
+
+def test_bounds_resolve_a_repetitive_texture():
+    """Stripes with a period of 6 px match at 10 px and at 4 or 16 px alike; bounds of
+    8..12 px from the user's vectors leave only the right one."""
+    from recon3d.stereo.match import MatchParams, match
+
+    rng = np.random.default_rng(0)
+    h, w, d = 80, 160, 10
+    stripes = np.tile(np.array([30.0, 220.0, 220.0, 90.0, 30.0, 160.0])[np.arange(w + d) % 6], (h, 1))
+    left = (stripes[:, :w] + rng.normal(0, 3, (h, w))).astype(np.float32)  # left x is right x - d
+    right = (stripes[:, d:] + rng.normal(0, 3, (h, w))).astype(np.float32)
+    params = MatchParams(min_disparity=0, max_disparity=24)
+    inner = (slice(10, 70), slice(30, 130))
+    free = match(left, right, params).disparity[inner]
+    low = np.full((h, w), 8.0, np.float32)
+    bounded = match(left, right, params, low=low, high=low + 4.0).disparity[inner]
+    assert np.mean(np.abs(bounded - d) <= 1.0) >= 0.95
+    assert np.mean(np.abs(free - d) <= 1.0) < 0.5
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_georef_in_degrees(small_scene, tmp_path):
+    folder = _copy(small_scene, tmp_path)
+    (folder / "georef.json").write_text(json.dumps({"crs": "EPSG:4326", "offset": [0, 0, 0]}))
+    _fails([folder], tmp_path, "georef.json", "degrees")
+
+
+def test_image_of_another_size(small_scene, tmp_path):
+    folder = _copy(small_scene, tmp_path)
+    image = cv2.imread(str(folder / "images" / "s1_2.png"))
+    cv2.imwrite(str(folder / "images" / "s1_2.png"), cv2.resize(image, (200, 150)))
+    _fails([folder], tmp_path, "s1_2.png", "the model says")
+
+
+def test_cameras_that_share_no_ground(small_scene, tmp_path):
+    """Tracks without a common point: the pair is refused with the reason named."""
+    folder = _copy(small_scene, tmp_path)
+    points = folder / "sparse" / "points3D.txt"
+    lines = []
+    for line in points.read_text().splitlines():
+        if line.startswith("#"):
+            lines.append(line)
+            continue
+        fields = line.split()
+        track = fields[8:]
+        # keep each point in the first image of its track only
+        lines.append(" ".join(fields[:8] + track[:2]))
+    points.write_text("\n".join(lines) + "\n")
+    _fails([folder], tmp_path, "s1_1.png-s1_2.png", "common sparse points")
+
+
+def test_dem_that_misses_the_scene(small_scene, tmp_path):
+    from affine import Affine
+
+    from recon3d.core.raster import Raster
+    from recon3d.io.geotiff import write_raster
+
+    dem = tmp_path / "dem.tif"
+    write_raster(Raster(np.full((10, 10), 50.0, np.float32), Affine(20.0, 0, 100000.0, 0, -20.0, 200000.0),
+                        __import__("pyproj").CRS.from_epsg(32631)), dem)
+    _fails([small_scene, "--dem", dem], tmp_path, "dem.tif", "does not cover")
