@@ -419,6 +419,10 @@ class _StageProgress:
 def _print_summary(state) -> None:
     click.echo(f"wrote {state.out_dir}  ({len(state.city)} buildings, {sum(state.timings.values()):.1f} s)")
     _echo_accuracy(state.report.get("accuracy", []))
+    if state.warnings:
+        click.echo(f"{len(state.warnings)} warning(s), repeated in report.html and run.json:")
+        for w in state.warnings:
+            click.echo(f"  - {w}")
 
 
 def _echo_accuracy(rows: list[dict]) -> None:

@@ -27,6 +27,7 @@ table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ddd;padding
 th{background:#f3f3f3}td.l,th.l{text-align:left}.grid{display:flex;flex-wrap:wrap;gap:12px}
 figure{margin:0}figcaption{font-size:.85em;color:#555;text-align:center}img{max-width:340px;border:1px solid #ccc}
 .small{font-size:.85em;color:#555}
+.warn{background:#fff4e0;border-left:4px solid #e08a00;padding:.4em .8em}
 """
 
 
@@ -48,7 +49,9 @@ def write_report(out_dir: str | Path) -> Path:
         f"<h1>recon3d report</h1><p class=small>{html.escape(run['inputs'].get('input', ''))} · "
         f"{run['inputs'].get('points', '?')} points · CRS {html.escape(str(run['inputs'].get('crs')))} · "
         f"recon3d {html.escape(run.get('recon3d', ''))}</p>",
+        _warnings_section(report.get("warnings") or run.get("warnings") or []),
         _accuracy_section(report.get("accuracy", [])),
+        _stereo_section(run.get("chosen", {}).get("stereo")),
         _ground_section(report),
         _images_section(out_dir),
         _buildings_section(out_dir, report),
@@ -77,6 +80,37 @@ def hillshade(z: np.ndarray, cell: float, *, azimuth: float = 315.0, altitude: f
     out = np.clip(shade * 255, 0, 255).astype(np.uint8)
     out[~np.isfinite(z)] = 0
     return out
+
+
+def _warnings_section(warnings: list[str]) -> str:
+    if not warnings:
+        return ""
+    items = "".join(f"<li>{html.escape(w)}</li>" for w in warnings)
+    return f"<h2>Warnings</h2><div class=warn><ul>{items}</ul></div>"
+
+
+def _stereo_section(stereo: dict | None) -> str:
+    """Frame stereo: each matched pair and its self-check against the sparse points."""
+    if not stereo or not stereo.get("pairs") or "self_check" not in stereo["pairs"][0]:
+        return ""
+    head = ("pair", "matched % of overlap", "sparse points covered %", "distance to sparse points (m)",
+            "in GSD", "reprojection (px, p95)", "vertical parallax (px)", "share of the cloud %")
+    rows = []
+    for p in stereo["pairs"]:
+        c = p["self_check"]
+        cells = [p.get("matched_percent"), c.get("coverage_percent"), c.get("discrepancy_m"), c.get("discrepancy_gsd"),
+                 c.get("reprojection_px"), p.get("vertical_parallax_px", {}).get("median"), p.get("fused_share_percent")]
+        rows.append(f"<tr><td class=l>{html.escape(p['pair'])}</td>" + "".join(f"<td>{_fmt(v, 2)}</td>" for v in cells) + "</tr>")
+    area = stereo.get("common_area")
+    note = ""
+    if area:
+        note = (f"<p class=small>Area both images of a matched pair see: {area['area_m2']:.0f} m², "
+                f"{area['filled_percent']:.1f} % in the DSM, {area['observed_percent']:.1f} % of it matched "
+                "(not filled in).</p>")
+    return (
+        "<h2>Stereo pairs and their self-check</h2><table><tr>" + "".join(f"<th>{h}</th>" for h in head)
+        + f"</tr>{''.join(rows)}</table>{note}"
+    )
 
 
 def _accuracy_section(rows: list[dict]) -> str:
