@@ -1,11 +1,16 @@
-"""Benchmark: a rendered 2000 x 1500 aerial pair to a fused point cloud (rectify, match, triangulate, fuse).
+"""Benchmark: one 2000 x 1500 aerial pair to a fused point cloud (rectify, match, triangulate, self-check, fuse).
 
-    .venv/bin/python scripts/bench_stereo.py [--width 2000 --height 1500]
+Renders the survey ``nadir_pair`` of the family (or another, ``--survey``), then times
+:func:`recon3d.pipeline.stereo.dense_cloud` on it and reports the stages of the matcher
+and the peak memory.
+
+    .venv/bin/python scripts/bench_stereo.py [--survey nadir_pair] [--width 2000] [--engine census]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import tempfile
 import time
@@ -14,29 +19,34 @@ from pathlib import Path
 from recon3d.config import StereoConfig
 from recon3d.io.colmap import read_scene
 from recon3d.pipeline.stereo import dense_cloud
-from recon3d.synthetic import write_scene
+from recon3d.synthetic.family import CONFIGURATIONS
+from recon3d.synthetic.scene import write_block_scene
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--width", type=int, default=2000)
-    parser.add_argument("--height", type=int, default=1500)
-    parser.add_argument("--gsd", type=float, default=0.1, help="ground sample distance (m)")
+    parser.add_argument("--survey", default="nadir_pair", choices=sorted(CONFIGURATIONS))
+    parser.add_argument("--width", type=int, help="image width (default: the survey's, 2000 px for nadir_pair)")
+    parser.add_argument("--engine", default="census", choices=["census", "sgbm"])
     args = parser.parse_args()
+    spec = CONFIGURATIONS[args.survey]
+    if args.width:
+        spec = spec.with_width(args.width)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "scene"
-        size = 0.75 * args.gsd * min(args.width, args.height)
         t = time.perf_counter()
-        write_scene(folder, seed=0, size=size, gsd=args.gsd, image_size=(args.width, args.height))
+        write_block_scene(folder, spec)
         render = time.perf_counter() - t
         scene = read_scene(folder)
         t = time.perf_counter()
-        cloud, report = dense_cloud(scene, StereoConfig())
+        cloud, report = dense_cloud(scene, dataclasses.replace(StereoConfig(), engine=args.engine))
         seconds = time.perf_counter() - t
-    pair = report["pairs"][0]
-    print(f"{args.width} x {args.height} pair, {size:.0f} m city at {args.gsd} m GSD (render {render:.1f} s)")
-    print(f"  disparity range {pair['disparity_range']['value']}, vertical parallax {pair['vertical_parallax_px']}")
-    print(f"  pair to fused cloud: {seconds:.1f} s, {len(cloud):,} points")
+    print(f"{args.survey}: {spec.strips * spec.images_per_strip} images of {spec.width} x {spec.height} px (render {render:.1f} s)")
+    for pair in report["pairs"]:
+        m = pair["matching"]
+        print(f"  {pair['pair']}: rectified {pair['rectified_size']}, disparities {pair['disparity_range']['value']}, "
+              f"matched {pair['matched_percent']} % of the overlap, matcher {m['seconds']}")
+    print(f"  {len(report['pairs'])} pair(s) to fused cloud: {seconds:.1f} s, {len(cloud):,} points")
     print(f"  peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
 
 
