@@ -65,6 +65,9 @@ class StereoConfig:
     max_object_height : float or None
         Metres the tallest object stands above the ``--dem``; None: measured on the
         sparse points (their highest above the DEM, plus 10 m).
+    max_partners : int
+        Frame blocks: each image is matched with its best this many partners (overlap,
+        base); 0 matches every usable pair.
     """
 
     max_disparities: int = 384
@@ -77,6 +80,7 @@ class StereoConfig:
     roof_tolerance: float = 1.0
     footprint_weight: float = 0.5
     max_object_height: float | None = None
+    max_partners: int = 4
 
     def __post_init__(self) -> None:
         if self.engine not in ("census", "sgbm"):
@@ -87,6 +91,8 @@ class StereoConfig:
             raise InputError("stereo.dem_tolerance and stereo.roof_tolerance must be >= 0")
         if not 0.0 <= self.footprint_weight <= 1.0:
             raise InputError(f"stereo.footprint_weight {self.footprint_weight}: between 0 and 1")
+        if self.max_partners < 0:
+            raise InputError(f"stereo.max_partners {self.max_partners}: at least 0 (0: every usable pair)")
         if self.max_object_height is not None and self.max_object_height <= 0:
             raise InputError(f"stereo.max_object_height {self.max_object_height}: must be > 0")
         if self.tile_size is not None and self.tile_size < 128:

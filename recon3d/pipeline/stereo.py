@@ -58,7 +58,7 @@ def dense_cloud(
         No usable pair, or a pair whose dense result contradicts the sparse points.
     """
     warn = warn or log.warning
-    pairs, candidates = select_pairs(scene.cameras, scene.sparse, scene.seen)
+    pairs, candidates = select_pairs(scene.cameras, scene.sparse, scene.seen, max_partners=config.max_partners or None)
     report = {"candidates": candidates, "pairs": []}
     if bounds is not None:
         report["constraints"] = getattr(bounds, "sources", {})

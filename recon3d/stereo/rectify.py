@@ -220,12 +220,16 @@ def select_pairs(
     max_ratio: float = 2.0,
     min_overlap: float = 0.2,
     min_points: int = 10,
+    max_partners: int | None = None,
 ) -> tuple[list[tuple[int, int]], list[dict]]:
     """Image pairs with enough common ground and a usable base-to-height ratio.
 
     The overlap is the share of the sparse points one image observes that the other
     observes too (their COLMAP tracks; without tracks, the points inside both frames);
-    the height is the median depth of those points.
+    the height is the median depth of those points. With ``max_partners``, a usable pair
+    is kept when it is among the best ``max_partners`` of either of its images, by common
+    sparse points times min(1, base-to-height / 0.3) (a narrow base measures depth less
+    well): a block's pairs then grow with its images, not with their square.
 
     Parameters
     ----------
@@ -248,7 +252,7 @@ def select_pairs(
         When no pair qualifies; the message lists the candidates.
     """
     visible = seen if seen is not None else np.stack([_inside(c, sparse) for c in cameras])
-    pairs, report = [], []
+    pairs, report, score = [], [], {}
     for i, j in itertools.combinations(range(len(cameras)), 2):
         a, b = cameras[i], cameras[j]
         both = visible[i] & visible[j]
@@ -273,6 +277,14 @@ def select_pairs(
         })
         if not why:
             pairs.append((i, j))
+            score[(i, j)] = float(both.sum()) * min(1.0, ratio / 0.3)
+    if max_partners is not None and pairs:
+        best = {k: sorted((p for p in pairs if k in p), key=lambda p: -score[p])[:max_partners] for k in range(len(cameras))}
+        kept = [p for p in pairs if p in best[p[0]] or p in best[p[1]]]
+        for r, p in zip([r for r in report if r["used"]], pairs, strict=True):
+            if p not in kept:
+                r.update(used=False, refused=f"not among the {max_partners} best partners of either image")
+        pairs = kept
     if not pairs:
         lines = "; ".join(f"{r['pair']}: {r.get('refused', '')}" for r in report)
         raise InputError(
