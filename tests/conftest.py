@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -25,6 +26,28 @@ def shared(relative: str) -> Path:
             pytest.fail(message)
         pytest.skip(message)
     return path
+
+
+def copy_scene(scene: Path, tmp_path: Path) -> Path:
+    """A copy of a scene folder to spoil, in ``tmp_path / "scene"``."""
+    dst = tmp_path / "scene"
+    shutil.copytree(scene, dst)
+    return dst
+
+
+def run_fails(args: list, tmp_path: Path, *needles: str) -> None:
+    """``recon3d run ARGS -o tmp_path/out`` exits 1 naming every needle, and writes nothing."""
+    from click.testing import CliRunner
+
+    from recon3d.cli import cli
+
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["-q", "run", *map(str, args), "-o", str(out)])
+    assert result.exit_code == 1, result.output
+    for n in needles:
+        assert n in result.output, result.output
+    assert not out.exists()
+    assert not list(tmp_path.glob(".out.partial-*"))
 
 
 @pytest.fixture(scope="session")

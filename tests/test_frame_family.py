@@ -12,12 +12,12 @@ footprint area completeness 68-100 %, ground check points 0.04-0.25 m on the DTM
 from __future__ import annotations
 
 import json
-import shutil
 
 import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import copy_scene, run_fails
 
 from recon3d.cli import cli
 from recon3d.errors import InputError
@@ -114,33 +114,17 @@ def small_scene(tmp_path_factory):
     return folder
 
 
-def _copy(scene, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(scene, dst)
-    return dst
-
-
-def _fails(args, tmp_path, *needles):
-    out = tmp_path / "out"
-    result = CliRunner().invoke(cli, ["-q", "run", *map(str, args), "-o", str(out)])
-    assert result.exit_code == 1, result.output
-    for n in needles:
-        assert n in result.output, result.output
-    assert not out.exists()
-    assert not list(tmp_path.glob(".out.partial-*"))
-
-
 def test_sparse_points_that_contradict_the_images_stop_the_run(small_scene, tmp_path):
     """A model whose points sit 3 m above where the images put them (a wrong scale or
     datum in the reconstruction): exit 1, the pair and the discrepancy named."""
     import pycolmap
 
-    folder = _copy(small_scene, tmp_path)
+    folder = copy_scene(small_scene, tmp_path)
     rec = pycolmap.Reconstruction(str(folder / "sparse"))
     for point in rec.points3D.values():
         point.xyz = point.xyz + np.array([0.0, 0.0, 3.0])
     rec.write_text(str(folder / "sparse"))
-    _fails([folder], tmp_path, "s1_1.png-s1_2.png", "sparse points", "ground sample distances")
+    run_fails([folder], tmp_path, "s1_1.png-s1_2.png", "sparse points", "ground sample distances")
 
 
 def test_lost_coverage_is_a_warning_naming_the_area(small_scene, tmp_path, monkeypatch):
@@ -259,21 +243,21 @@ def test_bounds_resolve_a_repetitive_texture():
 
 
 def test_georef_in_degrees(small_scene, tmp_path):
-    folder = _copy(small_scene, tmp_path)
+    folder = copy_scene(small_scene, tmp_path)
     (folder / "georef.json").write_text(json.dumps({"crs": "EPSG:4326", "offset": [0, 0, 0]}))
-    _fails([folder], tmp_path, "georef.json", "degrees")
+    run_fails([folder], tmp_path, "georef.json", "degrees")
 
 
 def test_image_of_another_size(small_scene, tmp_path):
-    folder = _copy(small_scene, tmp_path)
+    folder = copy_scene(small_scene, tmp_path)
     image = cv2.imread(str(folder / "images" / "s1_2.png"))
     cv2.imwrite(str(folder / "images" / "s1_2.png"), cv2.resize(image, (200, 150)))
-    _fails([folder], tmp_path, "s1_2.png", "the model says")
+    run_fails([folder], tmp_path, "s1_2.png", "the model says")
 
 
 def test_cameras_that_share_no_ground(small_scene, tmp_path):
     """Tracks without a common point: the pair is refused with the reason named."""
-    folder = _copy(small_scene, tmp_path)
+    folder = copy_scene(small_scene, tmp_path)
     points = folder / "sparse" / "points3D.txt"
     lines = []
     for line in points.read_text().splitlines():
@@ -285,7 +269,7 @@ def test_cameras_that_share_no_ground(small_scene, tmp_path):
         # keep each point in the first image of its track only
         lines.append(" ".join(fields[:8] + track[:2]))
     points.write_text("\n".join(lines) + "\n")
-    _fails([folder], tmp_path, "s1_1.png-s1_2.png", "common sparse points")
+    run_fails([folder], tmp_path, "s1_1.png-s1_2.png", "common sparse points")
 
 
 def test_dem_that_misses_the_scene(small_scene, tmp_path):
@@ -297,4 +281,4 @@ def test_dem_that_misses_the_scene(small_scene, tmp_path):
     dem = tmp_path / "dem.tif"
     write_raster(Raster(np.full((10, 10), 50.0, np.float32), Affine(20.0, 0, 100000.0, 0, -20.0, 200000.0),
                         __import__("pyproj").CRS.from_epsg(32631)), dem)
-    _fails([small_scene, "--dem", dem], tmp_path, "dem.tif", "does not cover")
+    run_fails([small_scene, "--dem", dem], tmp_path, "dem.tif", "does not cover")

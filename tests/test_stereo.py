@@ -1,12 +1,12 @@
 """Frame stereo end to end on a rendered synthetic city with exact truth, and its bad inputs."""
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 import shapely
 from click.testing import CliRunner
+from conftest import copy_scene, run_fails
 
 from recon3d.cli import cli
 from recon3d.errors import InputError
@@ -66,43 +66,28 @@ def test_cloud_is_georeferenced(stereo_run):
     assert {"red", "green", "blue"} <= set(las.point_format.dimension_names)
 
 
-def _copy(scene, tmp_path):
-    dst = tmp_path / "scene"
-    shutil.copytree(scene, dst)
-    return dst
-
-
-def _fails(folder, tmp_path, *needles):
-    out = tmp_path / "out"
-    result = CliRunner().invoke(cli, ["-q", "run", str(folder), "-o", str(out)])
-    assert result.exit_code == 1, result.output
-    for n in needles:
-        assert n in result.output
-    assert not out.exists()
-
-
 def test_missing_image(scene, tmp_path):
-    folder = _copy(scene, tmp_path)
+    folder = copy_scene(scene, tmp_path)
     (folder / "images" / "right.png").unlink()
-    _fails(folder, tmp_path, "right.png", "not found")
+    run_fails([folder], tmp_path, "right.png", "not found")
 
 
 def test_image_of_wrong_size(scene, tmp_path):
     import cv2
 
-    folder = _copy(scene, tmp_path)
+    folder = copy_scene(scene, tmp_path)
     image = cv2.imread(str(folder / "images" / "left.png"))
     cv2.imwrite(str(folder / "images" / "left.png"), image[:-10])
-    _fails(folder, tmp_path, "left.png", "the model says")
+    run_fails([folder], tmp_path, "left.png", "the model says")
 
 
 def test_unsupported_camera_model(scene, tmp_path):
-    folder = _copy(scene, tmp_path)
+    folder = copy_scene(scene, tmp_path)
     cams = folder / "sparse" / "cameras.txt"
     text = cams.read_text().replace("PINHOLE", "FULL_OPENCV", 1)
     lines = [ln if ln.startswith("#") or "FULL_OPENCV" not in ln else ln + " 0 0 0 0 0 0 0 0" for ln in text.splitlines()]
     cams.write_text("\n".join(lines) + "\n")
-    _fails(folder, tmp_path, "FULL_OPENCV", "not supported")
+    run_fails([folder], tmp_path, "FULL_OPENCV", "not supported")
 
 
 def test_pair_without_base(scene, tmp_path):
@@ -130,9 +115,9 @@ def test_parallax_check_refuses_wrong_orientation(scene):
 
 
 def test_no_crs(scene, tmp_path):
-    folder = _copy(scene, tmp_path)
+    folder = copy_scene(scene, tmp_path)
     (folder / "georef.json").write_text(json.dumps({"offset": [0, 0, 0]}))
-    _fails(folder, tmp_path, "no CRS")
+    run_fails([folder], tmp_path, "no CRS")
 
 
 def test_buildings_found_and_trees_left_out(stereo_run, scene):
