@@ -190,12 +190,13 @@ def pair_bounds(
     z_range: tuple[float, float],
     *,
     step_px: int = 4,
-    samples: int = 64,
+    samples: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel disparity bounds of a rectified pair from elevation bounds.
 
     Each pixel of a coarse grid (every ``step_px`` pixels) casts its ray from the left
-    camera through ``samples`` heights spanning ``z_range`` (world). The lowest surface
+    camera through ``samples`` heights spanning ``z_range`` (world; by default as many
+    as keep the most oblique ray's steps within half a grid cell across, 32 to 512). The lowest surface
     the pixel can see lies at the highest height where the ray is already below a lower
     bound (inside the ground or a building); the highest, at the highest height not above
     an upper bound. The coarse bounds are widened to their neighbours' and enlarged to
@@ -215,6 +216,10 @@ def pair_bounds(
     direction = rays.reshape(-1, 3) @ pair.rotation  # world direction per unit of rectified depth
     centre = pair.camera_left.center + np.asarray(offset, np.float64)
     z0, z1 = z_range
+    if samples is None:
+        slope = np.hypot(direction[:, 0], direction[:, 1]) / np.maximum(np.abs(direction[:, 2]), 1e-9)
+        step = 0.5 * abs(bounds.transform.a) / max(float(slope.max()), 1e-3)
+        samples = int(np.clip(np.ceil((z1 - z0) / step) + 1, 32, 512))
     heights = np.linspace(z1, z0, samples)  # from the top down
     dz = (z1 - z0) / max(samples - 1, 1)
     n = len(direction)
