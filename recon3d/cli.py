@@ -56,7 +56,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--gcps", type=click.Path(path_type=Path), help="Ground control points (CSV x,y,z in the output CRS) for a satellite pair's absolute bias.")
 @click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
 @click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
-@click.option("--dem", type=click.Path(path_type=Path), help="Coarse elevation model (GeoTIFF) bounding the heights a frame-stereo scene is matched in.")
+@click.option("--dem", type=click.Path(path_type=Path), help="Elevation model (GeoTIFF: a coarse DEM, SRTM, Copernicus) bounding the heights a stereo scene or satellite pair is matched in.")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")

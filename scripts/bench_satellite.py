@@ -1,128 +1,164 @@
-"""Time the Pleiades Giza pair (about 800 x 800 px) from RPC crops to a DSM, single tile vs tiled.
+"""Benchmark: satellite (RPC) stereo on synthetic pairs with exact truth, side by side with peers.
 
-Usage::
+For every pair of :data:`recon3d.synthetic.satellite.SATELLITE_SCENES` (steep mountains
+with a village, a town on hills, a flat desert), renders the two pushbroom images, fits
+their RPCs, runs ``recon3d run img1.tif img2.tif`` and scores the DSM, DTM and
+footprints against the truth (:mod:`recon3d.synthetic.score`), beside:
 
-    .venv/bin/python scripts/bench_satellite.py [TILE_SIZE ...]
+- recon3d with the OpenCV SGBM engine (``stereo.engine = "sgbm"``) on its own
+  rectification, the matcher s2p also uses;
+- CARS (CNES), when ``--cars PATH`` names its ``cars`` executable (it lives in its own
+  virtual environment: ``python -m venv v && v/bin/pip install cars``), through
+  ``scripts/peer_cars.py``.
 
-Without arguments it compares the default (one tile for this crop) with 400 and 300 px
-tiles. For each it prints the time from the images to the DSM (issue target <= 30 s),
-the residual vertical parallax pooled over the tiles and per tile, the point count,
-the DSM density (share of the cells over the cloud's footprint that received points
-before hole filling) and the Khufu pyramid's height above the plateau (about 139 m).
+``--giza`` also runs the shared Pleiades pair and prints the checks of issue 16 there.
 
-It then shows why tiles matter on larger scenes, from the RPCs alone (the images are
-800 px crops, but the RPCs cover the full scenes): for square windows of the first
-scene centred on the crop, the largest row difference the affine approximation leaves
-on RPC correspondences (``affine_residual_px``), one affine map for the window vs one
-per 800 px tile.
+    .venv/bin/python scripts/bench_satellite.py                      # 400 m scenes (880 px)
+    .venv/bin/python scripts/bench_satellite.py --size 500 --only mountain
+    .venv/bin/python scripts/bench_satellite.py --cars /work/peers/.venv-cars/bin/cars --giza
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import json
+import resource
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-import pyproj
-import rasterio
 
-from recon3d.core.geo import crs_units
-from recon3d.core.raster import grid_for_bounds
-from recon3d.io.rpc import read_rpc_camera
-from recon3d.io.rpc import RPCCamera
-from recon3d.quality.evaluate import landmark_height
-from recon3d.stereo.satellite import (
-    AUTO_TILE,
-    _affine_maps,
-    _apply,
-    _epipolar_geometry,
-    _sub_camera,
-    dense_cloud_rpc,
-    tile_grid,
-)
-from recon3d.terrain import dsm as dsm_stage
+from recon3d.config import PipelineConfig
+from recon3d.io.geotiff import read_raster
+from recon3d.pipeline.run import run
+from recon3d.synthetic.satellite import SATELLITE_SCENES, write_satellite_scene
+from recon3d.synthetic.scene import scene_city
+from recon3d.synthetic.score import score_stereo
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "stereo" / "pleiades_gizeh"
-KHUFU = (31.134225, 29.979175)  # lon, lat
+HERE = Path(__file__).resolve().parent
+GIZA = HERE.parent.parent / "shared" / "data" / "stereo" / "pleiades_gizeh"
+KHUFU = (31.134225, 29.979175)  # lon, lat of the Great Pyramid's apex
 
 
-def load():
-    cams = [read_rpc_camera(DATA / f"img{i}.tif") for i in (1, 2)]
-    images = []
-    for cam in cams:
-        with rasterio.open(cam.image_path) as src:
-            images.append(src.read(1, masked=True).astype(np.float32).filled(np.nan))
-    return cams, images
+def run_recon3d(folder: Path, out: Path, config: PipelineConfig | None, city) -> dict:
+    t = time.perf_counter()
+    truth = folder / "truth"
+    state = run((folder / "img1.tif", folder / "img2.tif"), out, checkpoints=truth / "checkpoints.csv",
+                overwrite=True, config=config)
+    observed = np.isfinite(state.dsm.data) & ~state.dsm_filled
+    if state.dsm_unobserved is not None:
+        observed &= ~state.dsm_unobserved
+    score = score_stereo(folder, state.dsm, dtm=state.dtm, footprints=[b.footprint for b in state.city],
+                         observed=observed, city=city)
+    stereo = state.auto["stereo"]
+    score.update(seconds=round(time.perf_counter() - t, 1), stereo_seconds=state.timings.get("stereo"),
+                 matched_percent=stereo.get("matched_percent"), buildings=len(state.city),
+                 truth_buildings=len(city.buildings), warnings=state.warnings)
+    return score
 
 
-def khufu_height(dsm) -> tuple[float, float]:
-    """Khufu above the plateau just outside its 230 m base (m): mean of the 5 highest
-    cells within 60 m of the centre, and the highest cell."""
-    e, n = pyproj.Transformer.from_crs(4326, dsm.crs, always_xy=True).transform(*KHUFU)
-    khufu = landmark_height(dsm, e, n, search=60.0, ring=(118.0, 130.0))
-    return khufu["top5"], khufu["apex"]
+def run_cars(folder: Path, out: Path, cars: str, city) -> dict:
+    t = time.perf_counter()
+    done = subprocess.run([sys.executable, str(HERE / "peer_cars.py"), str(folder / "img1.tif"), str(folder / "img2.tif"),
+                           "-o", str(out), "--cars", cars], capture_output=True, text=True)
+    if done.returncode != 0:
+        return {"error": (done.stderr or done.stdout)[-300:]}
+    dsm_path = Path(done.stdout.strip().splitlines()[-1].split()[-1])
+    dsm = read_raster(dsm_path)
+    score = score_stereo(folder, dsm, city=city)
+    score["seconds"] = round(time.perf_counter() - t, 1)
+    return score
 
 
-def run(tile_size: int | None) -> None:
-    t0 = time.perf_counter()
-    (a, b), images = load()
-    cloud, report = dense_cloud_rpc(a, b, *images, tile_size=tile_size)
-    t1 = time.perf_counter()
-    spacing = dsm_stage.point_spacing(cloud.xyz[:, :2])
-    res, _ = dsm_stage.choose_resolution(spacing, crs_units(cloud.crs))  # as the pipeline does
-    lo, hi = cloud.bounds
-    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], res)
-    raw = dsm_stage.grid_points(cloud.xyz, transform, shape, reducer="max")
-    dsm = dsm_stage.make_dsm(cloud, res, max_hole_cells=int(200 / res**2), rim="low")
-    t2 = time.perf_counter()
-    tiles = report["tiles"]
-    footprint = np.isfinite(dsm.data)
-    density = 100.0 * float(np.isfinite(raw)[footprint].mean()) if footprint.any() else float("nan")
-    label = "auto" if tile_size is None else f"{tile_size} px"
-    print(f"\n== tile size {label}: {tiles['count']} tile(s) of <= {tiles['tile_size_px']} px, {tiles['failed']} failed")
-    print(f"   time: images -> cloud {t1 - t0:.1f} s, cloud -> DSM {t2 - t1:.1f} s, total {t2 - t0:.1f} s (target <= 30 s)")
-    vp = report["vertical_parallax_px"]
-    print(f"   vertical parallax: median {vp['median']} px, p90 {vp['p90']} px over {vp['n']} matches")
-    print(f"   points {report['points']}, spacing {spacing:.2f} m, matched {report['matched_percent']} %, "
-          f"DSM {res} m cells: {density:.1f} % filled before hole filling")
-    top5, apex = khufu_height(dsm)
-    print(f"   Khufu above the plateau: top-5 mean {top5:.1f} m, highest cell {apex:.1f} m (expected ~139 m)")
-    print(f"   affine model residual {report['affine_residual_px']} px (largest over the tiles)")
-    for r in tiles["per_tile"]:
-        p = r["vertical_parallax_px"]
-        print(f"   tile {r['tile']:2d} core {r['core']}: parallax median {p['median']} p90 {p['p90']} (n {p['n']}), "
-              f"disparities {r['disparity_range']}, bias {r['bias_px']} ({r['bias_from']}), {r['points']} points")
+COLUMNS = [
+    ("coverage", "cover%"), ("observed", "obs%"), ("matched_percent", "match%"), ("dsm_nmad", "NMAD"),
+    ("dsm_median", "median"), ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"), ("ground_rms", "gndDTM"),
+    ("roof_rms", "roof"), ("footprint_completeness", "compl%"), ("footprint_correctness", "corr%"),
+    ("buildings", "bldgs"), ("stereo_seconds", "stereo_s"), ("seconds", "s"),
+]
 
 
-def affine_residual(a: RPCCamera, b: RPCCamera) -> float:
-    """Largest row difference (px) of RPC correspondences after one affine map per image."""
-    heights, p1, p2, hh, d1, _ = _epipolar_geometry(a, b)
-    A1, A2 = _affine_maps(p1, p2, hh == heights[len(heights) // 2], d1)
-    return float(np.abs(_apply(A1, p1)[:, 1] - _apply(A2, p2)[:, 1]).max())
+def print_rows(rows: list[dict]) -> None:
+    print(f"{'scene':<10}{'who':<14}" + "".join(f"{c:>9}" for _, c in COLUMNS))
+    for r in rows:
+        for who, res in r["runs"].items():
+            if "error" in res:
+                print(f"{r['scene']:<10}{who:<14}error: {res['error'][:120]}")
+                continue
+            cells = [f"{res[k]:>9.2f}" if isinstance(res.get(k), float | int) else f"{'-':>9}" for k, _ in COLUMNS]
+            print(f"{r['scene']:<10}{who:<14}" + "".join(cells))
 
 
-def model_only(windows=(800, 2000, 5000, 10000)) -> None:
-    (a, b), _ = load()
-    full_a = RPCCamera(a.model, int(2 * a.model.samp_off + 1), int(2 * a.model.line_off + 1), name="scene1")
-    full_b = RPCCamera(b.model, int(2 * b.model.samp_off + 1), int(2 * b.model.line_off + 1), name="scene2")
-    cc, cr = a.col0 + a.width / 2, a.row0 + a.height / 2
-    print(f"\n== affine model residual (RPCs only), {AUTO_TILE} px tiles")
-    for n in windows:
-        box = np.array([cc - n / 2, cr - n / 2, cc + n / 2, cr + n / 2]).round().astype(int)
-        window = _sub_camera(full_a, box, f"window{n}")
-        one = affine_residual(window, full_b)
-        cores, _ = tile_grid(n, n, AUTO_TILE, 0)
-        tiled = max(affine_residual(_sub_camera(window, core, "tile"), full_b) for core in cores)
-        print(f"   {n:5d} px window: one affine map {one:.3f} px, {len(cores)} tiles {tiled:.3f} px (max)")
+def bench_scene(name: str, size: float, tmp: Path, cars: str | None) -> dict:
+    spec = dataclasses.replace(SATELLITE_SCENES[name], size=size)
+    folder = tmp / name
+    t = time.perf_counter()
+    made = write_satellite_scene(folder, spec)
+    row = {"scene": name, "pixels": made["cameras"][0].width, "render_s": round(time.perf_counter() - t, 1), "runs": {}}
+    city = scene_city(folder)
+    sgbm = PipelineConfig().with_overrides(["stereo.engine=sgbm"])
+    for who, config in (("recon3d", None), ("recon3d-sgbm", sgbm)):
+        try:
+            row["runs"][who] = run_recon3d(folder, tmp / f"out-{name}-{who}", config, city)
+        except Exception as exc:  # a failure is a result too
+            row["runs"][who] = {"error": str(exc)}
+    if cars:
+        row["runs"]["cars"] = run_cars(folder, tmp / f"out-{name}-cars", cars, city)
+    return row
 
 
-def main(argv: list[str]) -> None:
-    sizes = [int(v) for v in argv] if argv else [None, 400, 300]
-    for size in sizes:
-        run(size)
-    model_only()
+def giza_checks(tmp: Path) -> dict:
+    """The Giza checks of issue 16 on the shared Pleiades pair."""
+    import pyproj
+
+    from recon3d.quality.evaluate import landmark_height
+
+    state = run((GIZA / "img1.tif", GIZA / "img2.tif"), tmp / "out-giza", overwrite=True)
+    stereo = state.auto["stereo"]
+    ties = stereo.get("tie_heights_m", [np.nan, np.nan])
+    dsm, dtm = state.dsm.data, state.dtm.data
+    return {
+        "matched_percent": stereo.get("matched_percent"),
+        "tie_heights_m": ties,
+        "dsm_min": float(np.nanmin(dsm)), "dtm_min": float(np.nanmin(dtm)),
+        "dsm_cells_below_ties_minus_10m": int(np.sum(dsm < ties[0] - 10.0)),
+        "dtm_cells_below_ties_minus_10m": int(np.sum(dtm < ties[0] - 10.0)),
+        "dsm_coverage": float(np.isfinite(dsm).mean()), "dtm_coverage": float(np.isfinite(dtm).mean()),
+        "buildings": len(state.city),
+        "khufu": landmark_height(state.dsm, *pyproj.Transformer.from_crs(4326, state.dsm.crs, always_xy=True)
+                                 .transform(*KHUFU), search=60.0, ring=(118.0, 130.0)),
+        "stereo_seconds": state.timings.get("stereo"),
+        "warnings": state.warnings,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=float, default=400.0, help="side of each scene (m); 0.5 m GSD")
+    parser.add_argument("--only", nargs="*", choices=sorted(SATELLITE_SCENES), help="scenes to run")
+    parser.add_argument("--cars", help="the cars executable, to run CARS on the same pairs")
+    parser.add_argument("--giza", action="store_true", help="also the checks on the shared Giza pair")
+    parser.add_argument("--json", type=Path, help="write every figure here")
+    args = parser.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.only or list(SATELLITE_SCENES):
+            rows.append(bench_scene(name, args.size, Path(tmp), args.cars))
+            print_rows(rows[-1:])
+        print()
+        print_rows(rows)
+        result = {"scenes": rows}
+        if args.giza:
+            result["giza"] = giza_checks(Path(tmp))
+            print(json.dumps(result["giza"], indent=1, default=str))
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1, default=str))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

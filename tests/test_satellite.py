@@ -85,10 +85,19 @@ def test_stereo_report(giza):
     # the bias removed once (0.51 px median while it was removed twice): measured 0.12 px
     assert stereo["vertical_parallax_px"]["median"] <= 0.3 and stereo["vertical_parallax_px"]["n"] >= 100
     assert stereo["affine_residual_px"] < 0.05  # measured 0.007 px over the 800 px crop
-    assert stereo["matched_percent"] >= 70.0
+    assert stereo["matched_percent"] >= 90.0  # measured 94.7 % of the overlap (70 % with the RPC's height range)
     assert run["inputs"]["kind"] == "satellite pair"
-    smooth = read_raster(giza.out_dir / "dtm.tif").data
-    assert np.isfinite(smooth).all()
+    # searched: the tie points' heights, not the RPC's blind 10..270 m
+    low, high = stereo["tie_heights_m"]
+    assert all(low - 30 <= t["search_heights_m"][0] and t["search_heights_m"][1] <= high + 30
+               for t in stereo["tiles"]["per_tile"])
+    dsm = read_raster(giza.out_dir / "dsm.tif").data
+    dtm = read_raster(giza.out_dir / "dtm.tif").data
+    # products only where both images see the ground: no extrapolation, nothing below the ties
+    # (the DSM reached -18 m and the DTM covered the whole grid in streaks)
+    assert np.array_equal(np.isfinite(dtm), np.isfinite(dsm))
+    assert np.nanmin(dsm) >= low - 10.0 and np.nanmin(dtm) >= low - 10.0
+    assert 0.5 < np.isfinite(dsm).mean() < 0.8  # measured 0.69 of the grid
 
 
 def _fails(args, *needles, tmp_path):
@@ -121,7 +130,7 @@ def test_crops_that_do_not_overlap(tmp_path):
     with rasterio.open(far, "r+") as dst:
         t = dst.transform
         dst.transform = rasterio.Affine(t.a, t.b, t.c + 3000, t.d, t.e, t.f)  # 3000 px further east
-    _fails([shared(IMG1), far], "img1 and img2", "do not overlap", tmp_path=tmp_path)
+    _fails([shared(IMG1), far], "img1.tif and", "img2.tif do not overlap", tmp_path=tmp_path)
 
 
 def test_crops_outside_the_rpc_validity_domain(tmp_path):
@@ -271,11 +280,14 @@ def test_tiles_skip_empty_areas_and_repeat_exactly():
     sub = dataclasses.replace(a, width=360, height=360, col0=a.col0 + 200, row0=a.row0 + 200)
     crop = image_a[200:560, 200:560].copy()
     crop[:190, :190] = np.nan  # the first tile's core and 94 % of its box
+    # the second image cut around it: each must see at least 20 % of the other
+    b = dataclasses.replace(b, width=600, height=600, col0=b.col0 + 100, row0=b.row0 + 100)
+    image_b = image_b[100:700, 100:700]
     runs = [dense_cloud_rpc(sub, b, crop, image_b, tile_size=180, margin=16) for _ in range(2)]
     (c1, r1), (c2, r2) = runs
     assert r1["tiles"]["count"] == 4 and r1["tiles"]["failed"] == 1
     assert r1["tiles"]["failures"][0]["tile"] == 0 and "no texture" in r1["tiles"]["failures"][0]["reason"]
     assert [t["tile"] for t in r1["tiles"]["per_tile"]] == [1, 2, 3]
     assert c1.xyz.tobytes() == c2.xyz.tobytes() and json.dumps(r1) == json.dumps(r2)
-    with pytest.raises(InputError, match="no tile could be matched"):
+    with pytest.raises(InputError, match="too few to bound the heights"):
         dense_cloud_rpc(sub, b, np.full_like(crop, np.nan), image_b, tile_size=180)

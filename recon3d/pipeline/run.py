@@ -261,8 +261,10 @@ def read_inputs(s: RunState) -> None:
         raise InputError(
             f"{s.input_path}: unsupported input (expected .las, .laz, .ply or a folder with images/ and sparse/)"
         )
-    if s.dem_path and (s.scene is None or s.satellite_paths is not None):
-        raise InputError(f"{s.dem_path}: --dem bounds the matching of a frame-stereo scene; {s.input_path} is not one")
+    if s.dem_path and s.scene is None:
+        raise InputError(f"{s.dem_path}: --dem bounds the matching of a stereo input; {s.input_path} is not one")
+    if s.dem_path and s.satellite_paths is not None:
+        s.dem = _read_satellite_dem(s.dem_path, s.scene[0])
     if s.cloud is not None:
         _read_side_inputs(s)
 
@@ -285,6 +287,27 @@ def match_stereo(s: RunState) -> None:
     _read_side_inputs(s)
 
 
+#: Metres the tallest object may stand above a ``--dem`` of a satellite pair when
+#: ``stereo.max_object_height`` is not set (the DEM's own error is ``stereo.dem_tolerance``).
+SATELLITE_OBJECT_HEIGHT = 50.0
+
+
+def _read_satellite_dem(path: Path, cam) -> Raster:
+    """The ``--dem`` of a satellite pair, in its own CRS, checked to cover the reference image."""
+    from recon3d.io.geotiff import read_raster
+
+    dem = read_raster(path)
+    if dem.crs is None:
+        raise InputError(f"{path}: the elevation model has no CRS")
+    rows = np.array([0.0, 0.0, cam.height - 1.0, cam.height - 1.0, cam.height / 2])
+    cols = np.array([0.0, cam.width - 1.0, 0.0, cam.width - 1.0, cam.width / 2])
+    lon, lat = cam.localize(rows, cols, np.full(5, float(np.mean(cam.model.height_range))))
+    x, y = pyproj.Transformer.from_crs(4326, dem.crs, always_xy=True).transform(lon, lat)
+    if not np.isfinite(dem.sample(x, y)).any():
+        raise InputError(f"{path}: the elevation model does not cover {cam.image_path} (in its CRS {crs_name(dem.crs)})")
+    return dem
+
+
 def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
     """RPC pair to a cloud in the scene's UTM zone (or the CRS given with --crs)."""
     import rasterio
@@ -296,7 +319,11 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
     for cam in (a, b):
         with rasterio.open(cam.image_path) as src:
             images.append(src.read(1, masked=True).astype(np.float32).filled(np.nan))
-    cloud, report = dense_cloud_rpc(a, b, *images, tile_size=s.config.stereo.tile_size)
+    cfg = s.config.stereo
+    cloud, report = dense_cloud_rpc(
+        a, b, *images, tile_size=cfg.tile_size, engine=cfg.engine, dem=s.dem,
+        dem_tolerance=cfg.dem_tolerance + (cfg.max_object_height or SATELLITE_OBJECT_HEIGHT),
+    )
     report["crs"] = {"value": crs_name(cloud.crs), "reason": "UTM zone of the scene centre"}
     if s.crs is not None:
         t = pyproj.Transformer.from_crs(cloud.crs, s.crs, always_xy=True)
@@ -335,7 +362,7 @@ def _read_vectors(s: RunState, crs: pyproj.CRS, bounds: tuple[np.ndarray, np.nda
         s.old_buildings, notes = vectors.read_footprints(s.old_buildings_path, crs=crs)
         s.notes += notes
     s.constraints = _read_constraints(s, crs)
-    if s.dem_path:
+    if s.dem_path and s.dem is None:
         from recon3d.io.geotiff import read_dem
 
         s.dem = read_dem(s.dem_path, crs=crs, bounds=bounds)
@@ -401,6 +428,12 @@ def make_dsm(s: RunState) -> None:
         if consistent is not None:
             count = dsm_stage.grid_points(s.cloud.xyz[consistent > 0], s.dsm.transform, s.dsm.shape, reducer="count")
             s.dsm_consistent = count > 0
+    if s.satellite_paths is not None:  # products only where both images see the ground
+        s.common_area = _rpc_common_area(s, s.dsm)
+        s.dsm.data[~s.common_area] = np.nan
+        s.dsm_filled &= s.common_area
+        if s.dsm_unobserved is not None:
+            s.dsm_unobserved &= s.common_area
     if frame_stereo and s.common_area is not None:
         _check_common_area(s)
 
@@ -453,6 +486,35 @@ def _common_area(s: RunState, dsm: Raster) -> np.ndarray:
     return common.reshape(dsm.shape)
 
 
+def _rpc_common_area(s: RunState, dsm: Raster) -> np.ndarray:
+    """Satellite pair: (rows, cols) bool, the cells whose surface both images show.
+
+    Each cell centre, at its DSM height (the median where it has none), is projected
+    through both RPCs (the second with the relative bias removed by matching) and must
+    fall on a finite pixel of each image, :data:`COMMON_AREA_MARGIN_PX` or more from
+    its borders.
+    """
+    import rasterio
+
+    xs, ys = dsm.cell_centers()
+    x, y = np.meshgrid(xs, ys)
+    finite = np.isfinite(dsm.data)
+    h = np.where(finite, dsm.data, float(np.nanmedian(dsm.data)) if finite.any() else 0.0).ravel()
+    lon, lat = pyproj.Transformer.from_crs(dsm.crs, 4326, always_xy=True).transform(x.ravel(), y.ravel())
+    shift = np.asarray(s.auto["stereo"].get("relative_bias_px", [0.0, 0.0]), float)
+    common = np.ones(h.shape, bool)
+    for cam, extra in zip(s.scene, (np.zeros(2), shift), strict=True):
+        row, col = cam.project(lon, lat, h)
+        col, row = col + extra[0], row + extra[1]
+        m = COMMON_AREA_MARGIN_PX
+        inside = (col >= m - 0.5) & (col <= cam.width - 0.5 - m) & (row >= m - 0.5) & (row <= cam.height - 0.5 - m)
+        with rasterio.open(cam.image_path) as src:
+            nodata = ~src.read_masks(1).astype(bool)
+        r, c = np.clip(np.rint(row), 0, cam.height - 1).astype(np.int64), np.clip(np.rint(col), 0, cam.width - 1).astype(np.int64)
+        common &= inside & ~nodata[r, c]
+    return common.reshape(dsm.shape)
+
+
 def _check_common_area(s: RunState) -> None:
     """Frame stereo: how much of the common area the DSM fills; a warning below
     :data:`MIN_COMMON_FILLED` percent, naming where the empty cells are."""
@@ -495,8 +557,13 @@ def make_dtm(s: RunState) -> None:
     if s.constraints is not None:
         lines, points = s.constraints
         constraints = np.concatenate([dtm_stage.densify_lines(lines, s.dsm.resolution / 2), points])
-    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[s.dtm_points], s.dsm, noise=noise, constraints=constraints)
-    if s.dsm_unobserved is not None:
+    points = s.dtm_points
+    if s.satellite_paths is not None and "observed" in s.cloud.attributes:
+        points = points & (s.cloud.attributes["observed"] > 0)  # a filled-in disparity is no ground
+    s.dtm = dtm_stage.make_dtm(s.cloud.xyz[points], s.dsm, noise=noise, constraints=constraints)
+    if s.satellite_paths is not None:  # no extrapolation beyond what both images see
+        s.dtm.data[~np.isfinite(s.dsm.data)] = np.nan
+    elif s.dsm_unobserved is not None:
         _lower_unseen_guesses(s, noise)
     s.ndsm = dtm_stage.make_ndsm(s.dsm, s.dtm)
 
@@ -560,7 +627,10 @@ def find_buildings(s: RunState) -> None:
             s.auto["footprint_shift"] = {"value": np.round(np.median(shifts, axis=0), 3).tolist(),
                                          "reason": "median map-to-data shift found by aligning footprints with the nDSM"}
     else:
-        polygons = detect.detect_buildings(s.ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation)
+        ndsm = s.ndsm
+        if s.satellite_paths is not None and s.dsm_unobserved is not None:  # only where matched
+            ndsm = Raster(np.where(s.dsm_unobserved, np.nan, s.ndsm.data), s.ndsm.transform, s.ndsm.crs, s.ndsm.tags)
+        polygons = detect.detect_buildings(ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
         attrs = [{"source": "detected", **_rounded(detect.blob_descriptors(p))} for p in polygons]
     s.labels = detect.label_footprints(polygons, s.dsm)
@@ -729,7 +799,8 @@ def model_scan(s: RunState) -> Raster:
     xyz = s.cloud.xyz
     z = surface_at(s.city, xyz[:, 0], xyz[:, 1], s.dtm)
     scanned = PointCloud(np.column_stack([xyz[:, :2], z]), s.cloud.attributes, s.cloud.crs)
-    return _grid_dsm(s, scanned, s.dsm.resolution, max_hole_cells=0, extent=s.dsm_extent)
+    extent = s.dsm_extent or s.cloud.bounds  # the measured DSM's grid, even where the model has no surface
+    return _grid_dsm(s, scanned[np.isfinite(z)], s.dsm.resolution, max_hole_cells=0, extent=extent)
 
 
 def model_check_cells(s: RunState) -> np.ndarray:

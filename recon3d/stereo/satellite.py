@@ -36,11 +36,15 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "SatellitePair",
+    "TiePoints",
     "absolute_shift",
     "auto_tile_size",
+    "check_pair",
     "dense_cloud_rpc",
     "rectify_rpc_pair",
+    "search_heights",
     "tile_grid",
+    "triangulate_ties",
     "utm_crs",
 ]
 
@@ -217,6 +221,65 @@ def _footprint_box(a: RPCCamera, b: RPCCamera, box, shift: np.ndarray, margin: i
     return out
 
 
+# ------------------------------------------------------------------ checks
+#: Least share of either image the other must see (at some height of the RPC range).
+MIN_OVERLAP = 0.2
+
+
+def check_pair(a: RPCCamera, b: RPCCamera) -> dict:
+    """Check that two RPC images can form a stereo pair, before anything is matched.
+
+    Each image must lie within the image domain its RPC describes (a crop whose size or
+    offset does not fit its RPC is another image's RPC, or a crop whose offset was
+    lost), and each must see at least :data:`MIN_OVERLAP` of the other.
+
+    Returns
+    -------
+    dict
+        ``{"overlap_percent": [share of a that b sees, share of b that a sees]}``.
+
+    Raises
+    ------
+    InputError
+        Naming the image(s) and what does not fit.
+    """
+    for cam in (a, b):
+        m = cam.model
+        label = cam.image_path or cam.name
+        for axis, start, size, off, scale in (
+            ("rows", cam.row0, cam.height, m.line_off, m.line_scale),
+            ("columns", cam.col0, cam.width, m.samp_off, m.samp_scale),
+        ):
+            lo, hi = off - abs(scale), off + abs(scale)
+            slack = 0.05 * abs(scale) + 2.0
+            if start < lo - slack or start + size - 1 > hi + slack:
+                raise InputError(
+                    f"{label}: the image ({cam.width} x {cam.height} px) lies outside its RPC validity domain: "
+                    f"its {axis} {start:g}..{start + size - 1:g}, the RPC's {lo:.0f}..{hi:.0f} (another image's RPC, "
+                    "or a crop whose offset was lost?)"
+                )
+    share_a, share_b = _seen_share(a, b), _seen_share(b, a)
+    if min(share_a, share_b) < MIN_OVERLAP:
+        raise InputError(
+            f"images {a.image_path or a.name} and {b.image_path or b.name} do not overlap enough for stereo: "
+            f"the second sees {100 * share_a:.0f} % of the first, the first {100 * share_b:.0f} % of the second "
+            f"(at least {100 * MIN_OVERLAP:.0f} % of each)"
+        )
+    return {"overlap_percent": [round(100 * share_a, 1), round(100 * share_b, 1)]}
+
+
+def _seen_share(a: RPCCamera, b: RPCCamera, n: int = 21) -> float:
+    """Share of a 21 x 21 grid over ``a`` that falls on ``b``, at the best of 5 heights
+    of the RPC range (the ground's height is not known yet)."""
+    rows, cols = (g.ravel() for g in np.meshgrid(np.linspace(0, a.height - 1, n), np.linspace(0, a.width - 1, n), indexing="ij"))
+    best = 0.0
+    for h in np.linspace(*a.model.height_range, 5):
+        lon, lat = a.localize(rows, cols, np.full(rows.shape, h))
+        r2, c2 = b.project(lon, lat, np.full(rows.shape, h))
+        best = max(best, float(np.mean(b.contains(r2, c2))))
+    return best
+
+
 # ------------------------------------------------------------------ rectification
 def _correspondences(a: RPCCamera, b: RPCCamera, heights: np.ndarray, n: int = 15):
     """Crop pixels (col, row) of a grid over ``a`` and of the same ground points in ``b``, per height.
@@ -296,6 +359,7 @@ def rectify_rpc_pair(
     ties: tuple[np.ndarray, np.ndarray] | None = None,
     fallback_shift: np.ndarray | None = None,
     core=None,
+    heights: tuple[float, float] | None = None,
 ) -> SatellitePair:
     """Affine epipolar rectification of two RPC crops, with the relative RPC bias removed.
 
@@ -314,6 +378,9 @@ def rectify_rpc_pair(
     core : (4,) int or None
         Box (col0, row0, col1, row1) of ``a``: the parallax is measured on the
         features whose left point lies in it (None: everywhere).
+    heights : (float, float) or None
+        Ellipsoidal height interval (m) the disparity range must cover, e.g. from the
+        tie points (see :func:`search_heights`); None: the RPC's height range.
 
     Returns
     -------
@@ -324,8 +391,8 @@ def rectify_rpc_pair(
     InputError
         When the crops do not overlap, or the images are the same view (no parallax).
     """
-    heights, p1, p2, hh, d1, d2 = _epipolar_geometry(a, b)
-    h0, h1 = float(heights[0]), float(heights[-1])
+    sampled, p1, p2, hh, d1, d2 = _epipolar_geometry(a, b)
+    h0, h1 = (float(sampled[0]), float(sampled[-1])) if heights is None else (float(heights[0]), float(heights[1]))
     if ties is None:
         ties = _tie_points(image_a, image_b)
     shift, n_ties = _bias_from_ties(a, b, *ties, d2)
@@ -338,7 +405,7 @@ def rectify_rpc_pair(
             log.info("RPC pair %s-%s: %d tie points, the whole image's bias used", a.name, b.name, n_ties)
             shift, bias_from = np.asarray(fallback_shift, float), "fallback"
     p2 = p2 + shift
-    mid = hh == heights[len(heights) // 2]
+    mid = hh == sampled[len(sampled) // 2]
     A1, A2 = _affine_maps(p1, p2, mid, d1)
     A1, A2, size = _frame(A1, A2, a, b)
     left = _warp(image_a, A1, size)
@@ -346,14 +413,18 @@ def rectify_rpc_pair(
     q1, q2 = _apply(A1, p1), _apply(A2, p2)
     d = q1[:, 0] - q2[:, 0]
     affine_residual = float(np.abs(q1[:, 1] - q2[:, 1]).max())  # the affine cameras' own error
-    lo, hi = np.floor(d.min()) - 4, np.ceil(d.max()) + 4
+    d_mid = float(np.median(d[mid]))
+    pad = 4
+    if heights is not None:  # the disparities of the searched heights, over the whole crop
+        e1, e2, _ = _correspondences(a, b, np.array([h0, h1]))
+        d, pad = _apply(A1, e1)[:, 0] - _apply(A2, e2 + shift)[:, 0], 2
+    lo, hi = np.floor(d.min()) - pad, np.ceil(d.max()) + pad
     samples, rejected = _parallax_samples(left, right, A1, a, core)
     parallax = _parallax_summary(samples, rejected)
     log.info(
         "RPC pair %s-%s: disparity %d..%d, vertical parallax %s (affine model %.3f px)",
         a.name, b.name, lo, hi, parallax, affine_residual,
     )
-    d_mid = float(np.median(d[mid]))
     return SatellitePair(
         left, right, A1, A2, (h0, h1), (int(lo), int(hi)), parallax, shift,
         n_ties, bias_from, samples, d_mid, affine_residual,
@@ -465,6 +536,81 @@ def _bias_from_ties(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, 
     return shift, int(keep.sum())
 
 
+@dataclass
+class TiePoints:
+    """SIFT tie points of a pair that satisfy the RPC epipolar constraint, triangulated.
+
+    Attributes
+    ----------
+    left, right : (k, 2) float
+        Pixels (col, row) in ``a``'s and ``b``'s crops (``right`` as b's image shows them).
+    height : (k,) float
+        Ellipsoidal height (m) at which the left pixel's ray meets the right pixel's.
+    matched : int
+        SIFT matches before the epipolar test.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    height: np.ndarray
+    matched: int
+
+    def inside(self, box_a, box_b=None) -> np.ndarray:
+        """(k,) bool: ties whose left point lies in ``box_a`` (and right point in ``box_b``),
+        half-open boxes (col0, row0, col1, row1)."""
+        keep = np.ones(len(self.height), bool)
+        for pts, box in ((self.left, box_a), (self.right, box_b)):
+            if box is not None:
+                c0, r0, c1, r1 = box
+                keep &= (pts[:, 0] >= c0) & (pts[:, 0] < c1) & (pts[:, 1] >= r0) & (pts[:, 1] < r1)
+        return keep
+
+
+#: Largest distance (px) of a tie point's right pixel from the epipolar curve of its
+#: left pixel: s2p keeps matches within 1 px of the rectified row; off it they are
+#: false matches, whatever their descriptors say.
+TIE_EPIPOLAR_PX = 1.0
+
+
+def triangulate_ties(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, shift: np.ndarray) -> TiePoints:
+    """Tie points that lie on their epipolar curves, with their heights.
+
+    Each left pixel's ray is intersected with the right pixel (the relative bias
+    ``shift`` removed); a tie whose right pixel lies more than
+    :data:`TIE_EPIPOLAR_PX` from the curve its left pixel traces over the heights, or
+    whose height falls outside the RPC's height range widened by half its size, is a
+    false match and dropped.
+    """
+    if len(t1) == 0:
+        return TiePoints(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0)
+    h0, h1 = a.model.height_range
+    rpc_right = t2 - shift
+    h = _intersect(a, b, t1, rpc_right, h0, h1)
+    residual = np.linalg.norm(_lift(a, b, t1, h) - rpc_right, axis=1)
+    span = h1 - h0
+    ok = np.isfinite(h) & (residual <= TIE_EPIPOLAR_PX) & (h >= h0 - span / 2) & (h <= h1 + span / 2)
+    return TiePoints(t1[ok], t2[ok], h[ok], len(t1))
+
+
+#: Height margin (m) added below and above the tie points' range: the surface between
+#: the features (a dark valley floor, a roof's flat middle) may reach beyond them.
+SEARCH_MARGIN_M = 10.0
+
+
+def search_heights(heights: np.ndarray, *, margin: float = SEARCH_MARGIN_M) -> tuple[float, float]:
+    """The height interval to search, from tie point heights (the s2p way).
+
+    The 1st to 99th percentile (all of them for fewer than 100 ties: a percentile of a
+    few points is their extreme), widened by ``margin`` and by 10 % of its span, so
+    that a real surface a little beyond the features is still searched while a
+    single stray tie cannot widen the range.
+    """
+    h = np.sort(np.asarray(heights, float))
+    lo, hi = (np.percentile(h, [1, 99]) if len(h) >= 100 else (h[0], h[-1]))
+    extra = margin + 0.1 * (hi - lo)
+    return float(lo - extra), float(hi + extra)
+
+
 def _to8(image: np.ndarray) -> np.ndarray:
     v = image[np.isfinite(image)]
     lo, hi = np.percentile(v, [0.5, 99.5]) if v.size else (0.0, 1.0)
@@ -552,6 +698,9 @@ def dense_cloud_rpc(
     *,
     tile_size: int | None = None,
     margin: int = TILE_MARGIN,
+    engine: str = "census",
+    dem=None,
+    dem_tolerance: float = 20.0,
 ) -> tuple[PointCloud, dict]:
     """Rectify, match and intersect an RPC pair, tile by tile, into a cloud in its UTM zone.
 
@@ -575,11 +724,20 @@ def dense_cloud_rpc(
         ``SINGLE_TILE_MAX`` px, the whole-image rectification of earlier versions).
     margin : int
         Overlap margin (px) around each core, in the reference image.
+    engine : {"census", "sgbm"}
+        Matching engine (:class:`~recon3d.stereo.match.MatchParams`).
+    dem : Raster or None
+        An exogenous elevation model (heights in the RPCs' reference) that narrows each
+        tile's searched heights to its range under the tile, +- ``dem_tolerance``.
+    dem_tolerance : float
+        Metres the surface may stand above or lie below the DEM (objects, DEM error).
 
     Returns
     -------
     cloud : PointCloud
-        (n, 3): x, y in WGS 84 / UTM (metres), z ellipsoidal height (metres); ``quality``.
+        (n, 3): x, y in WGS 84 / UTM (metres), z ellipsoidal height (metres);
+        ``quality`` and ``observed`` (1 where the pixel was matched, 0 where its
+        disparity was filled in from its neighbours).
     report : dict
         Whole-image relative bias, residual vertical parallax pooled over the tiles
         (median, p90, rms, n, rejected), the largest affine-model residual
@@ -590,14 +748,21 @@ def dense_cloud_rpc(
         tile size, margin, count, failures and a per-tile record (core box, bias,
         parallax, affine residual, disparity range, matched percentage, points).
 
+    Each tile searches the heights of the tie points inside it (:func:`search_heights`;
+    the whole pair's when it holds fewer than ``MIN_TIE_POINTS``), never the RPC's blind
+    height range; points lower than the lowest tie by more than ``SEARCH_MARGIN_M``
+    are dropped.
+
     Raises
     ------
     InputError
         When the crops lie outside their RPC domain or do not overlap, the images are
-        the same view, or no tile could be processed.
+        the same view, too few tie points bound the heights (and no ``dem``), or no tile
+        could be processed.
     """
     if image_a.shape[:2] != (a.height, a.width) or image_b.shape[:2] != (b.height, b.width):
         raise ValueError("dense_cloud_rpc: image shapes do not match their cameras")
+    overlap = check_pair(a, b)
     _, _, _, _, _, d2 = _epipolar_geometry(a, b)  # the whole pair's checks, with today's messages
     size = auto_tile_size(a.width, a.height) if tile_size is None else int(tile_size)
     cores, boxes = tile_grid(a.width, a.height, size, margin)
@@ -606,12 +771,21 @@ def dense_cloud_rpc(
     nfeatures = max(3000, int(3000 * area / SINGLE_TILE_MAX**2))
     t1, t2 = _tie_points(image_a, image_b, nfeatures=nfeatures)
     whole_shift, n_ties = _bias_from_ties(a, b, t1, t2, d2)  # None: too few tie points
+    ties = triangulate_ties(a, b, t1, t2, np.zeros(2) if whole_shift is None else whole_shift)
+    if len(ties.height) < MIN_TIE_POINTS and dem is None:
+        raise InputError(
+            f"images {a.name} and {b.name}: {len(ties.height)} tie points agree with the RPCs "
+            f"({ties.matched} SIFT matches): too few to bound the heights to search; "
+            "give an elevation model with --dem"
+        )
+    floor = float(ties.height.min()) - SEARCH_MARGIN_M if len(ties.height) else -np.inf
     pieces, records, failures, samples, rejected = [], [], [], [], 0
-    heights = a.model.height_range
     for k, (core, box) in enumerate(zip(cores, boxes)):
         try:
+            search, why = _tile_search(a, b, box, ties, whole_shift, margin, len(cores) == 1, dem, dem_tolerance)
             piece, pair, (n_matched, n_core) = _tile_points(
-                a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin
+                a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin,
+                search=search, engine=engine, floor=floor,
             )
         except InputError as exc:
             log.warning(
@@ -621,7 +795,6 @@ def dense_cloud_rpc(
             failures.append({"tile": k, "core": core.tolist(), "reason": str(exc)})
             continue
         pieces.append(piece)
-        heights = pair.heights
         samples.append(pair.parallax_samples)
         rejected += pair.parallax["rejected"]
         records.append(
@@ -632,11 +805,13 @@ def dense_cloud_rpc(
                 "bias_from": pair.bias_from,
                 "bias_tie_points": pair.bias_ties,
                 "vertical_parallax_px": pair.parallax,
+                "search_heights_m": [round(search[0], 2), round(search[1], 2)],
+                "search_from": why,
                 "disparity_range": list(pair.disparity_range),
                 "disparity_mid": round(pair.disparity_mid, 2),
                 "affine_residual_px": round(pair.affine_residual_px, 4),
                 "matched_percent": round(100.0 * n_matched / max(n_core, 1), 2),
-                "core_samples": n_core,
+                "overlap_samples": n_core,
                 "matched_samples": n_matched,
                 "points": int(len(piece[0])),
             }
@@ -644,18 +819,28 @@ def dense_cloud_rpc(
     if not pieces:
         reasons = "; ".join(sorted({f["reason"] for f in failures}))
         raise InputError(f"images {a.name} and {b.name}: no tile could be matched ({reasons})")
-    lon, lat, h, conf = (np.concatenate([p[i] for p in pieces]) for i in range(4))
+    lon, lat, h, conf, seen = (np.concatenate([p[i] for p in pieces]) for i in range(5))
     crs = utm_crs(float(np.nanmedian(lon)), float(np.nanmedian(lat)))
     east, north = pyproj.Transformer.from_crs(4326, crs, always_xy=True).transform(lon, lat)
-    cloud = PointCloud(np.column_stack([east, north, h]), {"quality": conf.astype(np.float32)}, crs)
-    n_core = sum(r["core_samples"] for r in records)
+    attributes = {"quality": conf.astype(np.float32), "observed": seen.astype(np.uint8)}
+    cloud = PointCloud(np.column_stack([east, north, h]), attributes, crs)
+    n_core = sum(r["overlap_samples"] for r in records)
     matched_percent = round(100.0 * sum(r["matched_samples"] for r in records) / max(n_core, 1), 2)
     report = {
+        **overlap,
         "relative_bias_px": np.round(np.zeros(2) if whole_shift is None else whole_shift, 3).tolist(),
         "vertical_parallax_px": _parallax_summary(np.concatenate(samples), rejected),
         "affine_residual_px": round(max(r["affine_residual_px"] for r in records), 4),
         "disparity_range": _disparity_union(records),
-        "height_interval_m": [float(heights[0]), float(heights[1])],
+        "height_interval_m": [min(r["search_heights_m"][0] for r in records),
+                              max(r["search_heights_m"][1] for r in records)],
+        "tie_points": {
+            "sift_matches": ties.matched,
+            "on_epipolar_curves": int(len(ties.height)),
+            "epipolar_tolerance_px": TIE_EPIPOLAR_PX,
+        },
+        "tie_heights_m": [round(float(ties.height.min()), 2), round(float(ties.height.max()), 2)] if len(ties.height) else None,
+        "lowest_height_kept_m": round(floor, 2) if np.isfinite(floor) else None,
         "matched_percent": matched_percent,
         "points": len(cloud),
         "heights": "ellipsoidal (WGS 84), as the RPCs give them",
@@ -687,7 +872,50 @@ def _disparity_union(records: list[dict]) -> list[int]:
     return [int(np.floor(lo)), int(np.ceil(hi))]
 
 
-def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin):
+def _tile_search(a, b, box, ties: TiePoints, whole_shift, margin: int, whole: bool, dem, dem_tolerance: float):
+    """The heights one tile searches, and why: its tie points', else the whole pair's,
+    narrowed to the DEM's range under the tile (+- ``dem_tolerance``) when there is one."""
+    if whole:
+        sel = np.ones(len(ties.height), bool)
+    else:
+        shift = np.zeros(2) if whole_shift is None else whole_shift
+        sub = _sub_camera(a, box, "tile")
+        bbox = _footprint_box(sub, b, (0, 0, sub.width, sub.height), shift, margin)
+        sel = ties.inside(box, bbox)
+    search, why = None, None
+    if sel.sum() >= MIN_TIE_POINTS:
+        search, why = search_heights(ties.height[sel]), f"{int(sel.sum())} tie points in the tile"
+    elif len(ties.height) >= MIN_TIE_POINTS:
+        search = search_heights(ties.height)
+        why = f"the whole pair's {len(ties.height)} tie points (only {int(sel.sum())} in the tile)"
+    if dem is not None:
+        lo, hi = _dem_range(a, box, dem)
+        lo, hi = lo - dem_tolerance, hi + dem_tolerance
+        if search is not None and max(lo, search[0]) < min(hi, search[1]):
+            search, why = (max(lo, search[0]), min(hi, search[1])), f"{why}, within the DEM's {lo:.0f}..{hi:.0f} m"
+        else:
+            search, why = (lo, hi), f"the DEM under the tile, {lo:.0f}..{hi:.0f} m (+-{dem_tolerance:g} m)"
+    return search, why
+
+
+def _dem_range(a: RPCCamera, box, dem) -> tuple[float, float]:
+    """Lowest and highest DEM height under a tile of ``a`` (a 9 x 9 grid of its pixels,
+    each localised at the DEM height found under it at the previous step)."""
+    c0, r0, c1, r1 = (float(v) for v in box)
+    rows, cols = (g.ravel() for g in np.meshgrid(np.linspace(r0, r1 - 1, 9), np.linspace(c0, c1 - 1, 9), indexing="ij"))
+    to_dem = pyproj.Transformer.from_crs(4326, dem.crs, always_xy=True)
+    h = np.full(rows.shape, float(np.nanmedian(dem.data)))
+    for _ in range(3):
+        lon, lat = a.localize(rows, cols, h)
+        z = dem.sample(*to_dem.transform(lon, lat))
+        h = np.where(np.isfinite(z), z, h)
+    if not np.isfinite(z).any():
+        raise InputError(f"{a.name}: the DEM does not cover the tile at pixels {[int(v) for v in box]}")
+    return float(np.nanmin(z)), float(np.nanmax(z))
+
+
+def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin, *,
+                 search, engine: str = "census", floor: float = -np.inf):
     """Rectify, match and intersect one tile; the points of its core.
 
     Parameters
@@ -698,15 +926,22 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
         The whole pair's tie points (col, row) in ``a`` and ``b``.
     whole_shift : (2,) float or None
         The whole pair's bias, used when the tile has too few tie points (None: unknown).
+    search : (float, float)
+        Heights to search (m).
+    engine : str
+    floor : float
+        Points lower than this (m) are dropped.
 
     Returns
     -------
-    piece : tuple of four (n,) arrays
-        lon, lat (degrees), ellipsoidal height (m) and matching confidence of the
-        tile's core points, finite, in the matcher's (row-major rectified) order.
+    piece : tuple of five (n,) arrays
+        lon, lat (degrees), ellipsoidal height (m), matching confidence and observed
+        (True: matched, False: filled in) of the tile's core points whose match lies on
+        b's data, in the matcher's (row-major rectified) order.
     pair : SatellitePair
-    matched, samples : int
-        Rectified pixels that fall in the core: matched (before gap filling), and in all.
+    matched, overlap : int
+        Rectified pixels of the core whose match falls on b's data (the overlap), and
+        those of them matched rather than filled in.
 
     Raises
     ------
@@ -738,30 +973,36 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     local_ties = (t1[sel] - [c0, r0], t2[sel] - bbox[:2])
     local_core = np.asarray(core) - [c0, r0, c0, r0]
     pair = rectify_rpc_pair(
-        sa, sb, tile_a, tile_b, ties=local_ties, fallback_shift=whole_shift, core=None if whole else local_core
+        sa, sb, tile_a, tile_b, ties=local_ties, fallback_shift=whole_shift, core=None if whole else local_core,
+        heights=search,
     )
     lo, hi = pair.disparity_range
-    result = match(pair.left, pair.right, MatchParams(min_disparity=lo, max_disparity=hi + 1))
-    gy, gx = np.indices(result.disparity.shape)
-    grid = _apply(_invert(pair.A1), np.column_stack([gx.ravel(), gy.ravel()]).astype(float))
-    core_samples = _in_core(grid + [c0, r0], core, a.width, a.height)
-    matched = np.isfinite(result.disparity)
-    if result.filled is not None:
-        matched &= ~result.filled
-    counts = int(np.count_nonzero(matched.ravel() & core_samples)), int(np.count_nonzero(core_samples))
+    result = match(pair.left, pair.right, MatchParams(min_disparity=lo, max_disparity=hi + 1, engine=engine))
     y, x = np.nonzero(np.isfinite(result.disparity))
     d = result.disparity[y, x]
+    matched = ~result.filled[y, x] if result.filled is not None else np.ones(len(d), bool)
     p1 = _apply(_invert(pair.A1), np.column_stack([x, y]).astype(float)) + [c0, r0]
-    p2 = _apply(_invert(pair.A2), np.column_stack([x - d, y]).astype(float))
-    p2 = p2 - pair.shift + bbox[:2]
-    inside = _in_core(p1, core, a.width, a.height)
-    p1, p2, conf = p1[inside], p2[inside], result.confidence[y[inside], x[inside]]
+    p2_image = _apply(_invert(pair.A2), np.column_stack([x - d, y]).astype(float)) + bbox[:2]
+    # the overlap: core pixels whose match (found or filled in) falls on b's data
+    inside = _in_core(p1, core, a.width, a.height) & _on_data(image_b, p2_image)
+    counts = int(np.count_nonzero(matched & inside)), int(np.count_nonzero(inside))
+    p1, p2 = p1[inside], p2_image[inside] - pair.shift
+    conf, matched = result.confidence[y[inside], x[inside]], matched[inside]
     h = _intersect(a, b, p1, p2, *pair.heights)
     lon, lat = a.localize(p1[:, 1], p1[:, 0], h)
-    ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h)
+    ok = np.isfinite(lon) & np.isfinite(lat) & np.isfinite(h) & (h >= floor)
     if not ok.any():
         raise InputError(f"{sa.name}: nothing matched")
-    return (lon[ok], lat[ok], h[ok], conf[ok]), pair, counts
+    return (lon[ok], lat[ok], h[ok], conf[ok], matched[ok]), pair, counts
+
+
+def _on_data(image: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(k,) bool: pixels p (k, 2) (col, row) that fall on a finite pixel of ``image``."""
+    col, row = np.rint(p[:, 0]).astype(np.int64), np.rint(p[:, 1]).astype(np.int64)
+    h, w = image.shape[:2]
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    ok[ok] = np.isfinite(image[row[ok], col[ok]])
+    return ok
 
 
 def _invert(A: np.ndarray) -> np.ndarray:

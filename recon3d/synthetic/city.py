@@ -59,7 +59,7 @@ ROOF_TYPES = ("flat", "shed", "gable", "hip", "pyramid")
 _ROOF_WEIGHTS = (0.3, 0.1, 0.3, 0.2, 0.1)
 
 #: Terrain kinds of :func:`make_city`.
-TERRAINS = ("gentle", "flat", "slope", "hilly")
+TERRAINS = ("gentle", "flat", "slope", "hilly", "mountain")
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,7 @@ LAYOUTS = {
     "regular": Layout(pitch=36.0, street=8.0, setback=2.0, built=1.0),
     "dense": Layout(pitch=25.0, street=6.0, setback=1.0, built=1.0),
     "sparse": Layout(pitch=36.0, street=8.0, setback=2.0, built=0.4),
+    "none": Layout(pitch=36.0, street=8.0, setback=2.0, built=0.0),
 }
 
 #: Tree placements of :func:`make_city`.
@@ -155,7 +156,9 @@ def _make_terrain(rng: np.random.Generator, size: float, margin: float, kind: st
 
     ``"gentle"``: smooth random hills of a few metres on a slope of about 1 %;
     ``"flat"``: a level plane; ``"slope"``: a 10 % incline in a random direction with
-    hills of a metre; ``"hilly"``: hills and valleys of 6 to 15 m, about 100 m across.
+    hills of a metre; ``"hilly"``: hills and valleys of 6 to 15 m, about 100 m across;
+    ``"mountain"``: peaks and valleys of a fifth of the area's width, slopes of 30 to
+    60 % and steeper on their flanks.
     """
     if kind not in TERRAINS:
         raise ValueError(f"terrain {kind!r} is not one of {TERRAINS}")
@@ -165,6 +168,15 @@ def _make_terrain(rng: np.random.Generator, size: float, margin: float, kind: st
     gx, gy = np.meshgrid(coords, coords)
     z = np.full(gx.shape, 50.0)
     if kind == "flat":
+        return Terrain(x0, y0, _TERRAIN_SPACING, z)
+    if kind == "mountain":
+        span = max(size, 200.0)
+        for _ in range(int(rng.integers(3, 6))):
+            cx, cy = rng.uniform(-0.1 * size, 1.1 * size, size=2)
+            sigma = rng.uniform(0.18, 0.3) * span
+            peak = rng.choice([-1.0, 1.0], p=[0.3, 0.7]) * rng.uniform(0.6, 1.0) * sigma  # slopes 0.35-0.6
+            z += peak * np.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * sigma**2))
+        z += 50.0 - float(Terrain(x0, y0, _TERRAIN_SPACING, z).height(np.array(size / 2), np.array(size / 2)))
         return Terrain(x0, y0, _TERRAIN_SPACING, z)
     if kind == "slope":
         angle = rng.uniform(0, 2 * math.pi)
@@ -677,9 +689,9 @@ def make_city(
     terrain : {"gentle", "flat", "slope", "hilly"}
         See :data:`TERRAINS`: a few metres of relief, none, a 10 % incline, hills of
         up to 15 m.
-    layout : {"regular", "dense", "sparse"}
-        See :data:`LAYOUTS`: 36 m lots, 25 m lots with 6 m streets, or 40 % of the
-        36 m lots built.
+    layout : {"regular", "dense", "sparse", "none"}
+        See :data:`LAYOUTS`: 36 m lots, 25 m lots with 6 m streets, 40 % of the 36 m
+        lots built, or no building.
     trees : {"none", "beside", "over"}
         No trees; trees on open ground clear of the buildings; or those plus trees
         beside a third of the buildings whose crowns reach over the roof.
@@ -703,7 +715,7 @@ def make_city(
     ground = _make_terrain(_rng(seed, 1), size, size if margin is None else margin, terrain)
     streets = _street_grid(size, plan)
     n_lots = streets.n**2
-    n = max(1, round(plan.built * n_lots)) if n_buildings is None else int(n_buildings)
+    n = (max(1, round(plan.built * n_lots)) if plan.built > 0 else 0) if n_buildings is None else int(n_buildings)
     if n > n_lots:
         raise ValueError(
             f"{n} buildings do not fit a {size} m city ({n_lots} lots); make it larger"

@@ -520,8 +520,9 @@ def render(
     Parameters
     ----------
     city : SyntheticCity
-    camera : PinholeCamera
-        In the city's local frame.
+    camera : PinholeCamera or PushbroomCamera
+        In the city's local frame (anything with ``pixel_centres``, ``rays`` and a
+        ``center`` or per-pixel ``origins``).
     lighting : Lighting
     texture_scale : float
         Finest texture detail in metres (one to two pixels suits dense matching).
@@ -535,7 +536,10 @@ def render(
     start = time.perf_counter()
     uv = camera.pixel_centres()
     dirs = camera.rays(uv)
-    origin = np.broadcast_to(camera.center, dirs.shape)
+    if hasattr(camera, "origins"):  # a pushbroom camera: one projection centre per row
+        origin = camera.origins(uv)
+    else:
+        origin = np.broadcast_to(camera.center, dirs.shape)
     t, face = _cast(city, origin, dirs)
     hit = face >= 0
     xyz = np.full(dirs.shape, np.nan)
@@ -582,9 +586,10 @@ def visible(
     uv, depth = camera.project(xyz)
     inside = (depth > 0) & (uv[:, 0] >= 1) & (uv[:, 1] >= 1)
     inside &= (uv[:, 0] <= camera.width - 1) & (uv[:, 1] <= camera.height - 1)
-    vec = xyz - camera.center
+    start = camera.origins(uv) if hasattr(camera, "origins") else np.broadcast_to(camera.center, xyz.shape)
+    vec = xyz - start
     dist = np.linalg.norm(vec, axis=1)
-    t, _ = _cast(city, np.broadcast_to(camera.center, vec.shape), vec / dist[:, None])
+    t, _ = _cast(city, start, vec / dist[:, None])
     return inside & (np.abs(t - dist) <= tol + 1e-5 * dist)
 
 

@@ -32,7 +32,7 @@ from recon3d.core.raster import Raster
 from recon3d.io.geotiff import read_raster
 from recon3d.synthetic.city import SyntheticCity
 
-__all__ = ["score_stereo", "truth_range"]
+__all__ = ["scene_cameras", "score_stereo", "truth_range"]
 
 
 def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -134,10 +134,9 @@ def score_stereo(
 
 def _visible_share(scene, city: SyntheticCity, grid: Raster, common: np.ndarray) -> float:
     """Percent of the common cells whose top surface at least two cameras see unhidden."""
-    from recon3d.io.colmap import read_scene
     from recon3d.synthetic.render import visible
 
-    cameras = read_scene(scene).cameras
+    cameras = scene_cameras(scene, city)
     rows, cols = np.nonzero(common)
     lo, hi = truth_range(city, grid, common, samples=1)  # the cell centre's surface
     x, y = grid.cell_centers()
@@ -145,8 +144,28 @@ def _visible_share(scene, city: SyntheticCity, grid: Raster, common: np.ndarray)
     count = np.zeros(len(local), int)
     for cam in cameras:
         # the COLMAP cameras are in model = local coordinates; visible() wants the renderer's convention
-        count += visible(city, _renderer_camera(cam), local, tol=0.05)
+        count += visible(city, cam, local, tol=0.05)
     return _pct(count >= 2)
+
+
+def scene_cameras(scene: str | Path, city: SyntheticCity) -> list:
+    """The renderer's cameras of a scene folder (local coordinates of ``city``).
+
+    Frame scenes are read back from their COLMAP model; satellite scenes rebuilt from
+    the pair's parameters in ``truth/scene.json``.
+    """
+    import json
+
+    record = json.loads((Path(scene) / "truth" / "scene.json").read_text(encoding="utf-8"))
+    if record.get("generator") == "recon3d.synthetic.satellite":
+        from recon3d.synthetic.satellite import SatelliteSpec, satellite_pair
+
+        spec = record["spec"]
+        spec["centre_lonlat"] = tuple(spec["centre_lonlat"])
+        return list(satellite_pair(SatelliteSpec(**spec), city))
+    from recon3d.io.colmap import read_scene
+
+    return [_renderer_camera(cam) for cam in read_scene(scene).cameras]
 
 
 def _renderer_camera(cam):
