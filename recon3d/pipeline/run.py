@@ -287,6 +287,10 @@ def match_stereo(s: RunState) -> None:
     _read_side_inputs(s)
 
 
+#: Least share (percent) of the pixels both satellite images see that must be matched
+#: (not filled in) without a warning.
+MIN_SATELLITE_MATCHED = 80.0
+
 #: Metres the tallest object may stand above a ``--dem`` of a satellite pair when
 #: ``stereo.max_object_height`` is not set (the DEM's own error is ``stereo.dem_tolerance``).
 SATELLITE_OBJECT_HEIGHT = 50.0
@@ -324,6 +328,11 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
         a, b, *images, tile_size=cfg.tile_size, engine=cfg.engine, dem=s.dem,
         dem_tolerance=cfg.dem_tolerance + (cfg.max_object_height or SATELLITE_OBJECT_HEIGHT),
     )
+    for f in report["tiles"]["failures"]:
+        s.warn(f"satellite tile {f['tile']} (pixels {f['core']} of {a.image_path.name}) failed: {f['reason']}")
+    if report["matched_percent"] < MIN_SATELLITE_MATCHED:
+        s.warn(f"only {report['matched_percent']:.0f} % of the pixels both images see were matched "
+               f"(expected >= {MIN_SATELLITE_MATCHED:.0f} %); the rest is filled in and left out of the DTM and buildings")
     report["crs"] = {"value": crs_name(cloud.crs), "reason": "UTM zone of the scene centre"}
     if s.crs is not None:
         t = pyproj.Transformer.from_crs(cloud.crs, s.crs, always_xy=True)

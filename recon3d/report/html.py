@@ -89,8 +89,35 @@ def _warnings_section(warnings: list[str]) -> str:
     return f"<h2>Warnings</h2><div class=warn><ul>{items}</ul></div>"
 
 
+def _satellite_section(stereo: dict) -> str:
+    """Satellite pair: each tile's searched heights and why, bias, share matched, or why it failed."""
+    tiles = stereo["tiles"]
+    head = ("tile", "core (px)", "heights searched (m)", "from", "bias (px)", "vertical parallax (px)",
+            "matched % of overlap", "points")
+    rows = []
+    for t in tiles["per_tile"]:
+        cells = [t["tile"], t["core"], "{:.1f} .. {:.1f}".format(*t["search_heights_m"]), t["search_from"],
+                 t["bias_px"], t["vertical_parallax_px"].get("median"), t["matched_percent"], t["points"]]
+        rows.append("<tr>" + "".join(f"<td class=l>{html.escape(str(c))}</td>" for c in cells) + "</tr>")
+    for f in tiles["failures"]:
+        rows.append(f"<tr><td class=l>{f['tile']}</td><td class=l>{f['core']}</td>"
+                    f"<td class=l colspan=6>failed: {html.escape(f['reason'])}</td></tr>")
+    ties = stereo.get("tie_points", {})
+    note = (f"<p class=small>{ties.get('on_epipolar_curves', '?')} of {ties.get('sift_matches', '?')} SIFT tie points "
+            f"within {ties.get('epipolar_tolerance_px', '?')} px of their epipolar curves, heights "
+            f"{stereo.get('tie_heights_m')} m; {stereo.get('matched_percent')} % of the overlap matched "
+            "(the rest filled in: no DTM and no building from it).</p>")
+    return (
+        "<h2>Satellite pair: tiles</h2><table><tr>" + "".join(f"<th>{h}</th>" for h in head)
+        + f"</tr>{''.join(rows)}</table>{note}"
+    )
+
+
 def _stereo_section(stereo: dict | None) -> str:
-    """Frame stereo: each matched pair and its self-check against the sparse points."""
+    """Frame stereo: each matched pair and its self-check against the sparse points;
+    satellite pairs: their tiles."""
+    if stereo and "tiles" in stereo:
+        return _satellite_section(stereo)
     if not stereo or not stereo.get("pairs") or "self_check" not in stereo["pairs"][0]:
         return ""
     head = ("pair", "matched % of overlap", "sparse points covered %", "distance to sparse points (m)",

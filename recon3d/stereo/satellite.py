@@ -35,11 +35,13 @@ from recon3d.io.rpc import RPCCamera
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "BiasModel",
     "SatellitePair",
     "TiePoints",
     "absolute_shift",
     "auto_tile_size",
     "check_pair",
+    "fit_bias_model",
     "dense_cloud_rpc",
     "rectify_rpc_pair",
     "search_heights",
@@ -397,13 +399,18 @@ def rectify_rpc_pair(
         ties = _tie_points(image_a, image_b)
     shift, n_ties = _bias_from_ties(a, b, *ties, d2)
     bias_from = "tie points"
+    if shift is not None and fallback_shift is not None:
+        off = float(np.linalg.norm(shift - fallback_shift))
+        if off > BIAS_AGREEMENT_PX:  # a few ties on one structure: the pair's model knows better
+            log.info("RPC pair %s-%s: the tile's bias is %.2f px off the pair's model; the model used", a.name, b.name, off)
+            shift, bias_from = np.asarray(fallback_shift, float), f"pair model (the tile's own ties {off:.2f} px off)"
     if shift is None:
         if fallback_shift is None:
             log.warning("RPC pair %s-%s: %d tie points, no bias correction", a.name, b.name, n_ties)
             shift, bias_from = np.zeros(2), "none"
         else:
-            log.info("RPC pair %s-%s: %d tie points, the whole image's bias used", a.name, b.name, n_ties)
-            shift, bias_from = np.asarray(fallback_shift, float), "fallback"
+            log.info("RPC pair %s-%s: %d tie points, the pair's bias model used", a.name, b.name, n_ties)
+            shift, bias_from = np.asarray(fallback_shift, float), "pair model (too few tie points in the tile)"
     p2 = p2 + shift
     mid = hh == sampled[len(sampled) // 2]
     A1, A2 = _affine_maps(p1, p2, mid, d1)
@@ -493,6 +500,85 @@ def _tie_points(
     return t1, t2
 
 
+#: A tile's own relative bias may differ from the pair's bias model by this much (px)
+#: before the model is trusted over it.
+BIAS_AGREEMENT_PX = 0.3
+
+
+@dataclass
+class BiasModel:
+    """The relative pointing bias of a pair over the reference image: an affine function.
+
+    RPCs of one pair disagree by an offset that drifts slowly over a scene (attitude
+    drift). Only its component across the epipolar lines matters; it is fitted to
+    every tie point as ``c0 + c1 * col + c2 * row`` (robustly; the drift terms only
+    when they are significant), the global refinement that makes tiles agree.
+
+    Attributes
+    ----------
+    across : (2,) float
+        Unit direction in b's image across the epipolar lines.
+    coeffs : (3,) float
+        c0 (px), c1 and c2 (px per px of ``a``'s crop).
+    rms : float
+        RMS (px) of the tie points' offsets about the model.
+    ties : int
+        Tie points the model was fitted to.
+    """
+
+    across: np.ndarray
+    coeffs: np.ndarray
+    rms: float
+    ties: int
+
+    def at(self, col: float, row: float) -> np.ndarray:
+        """(2,) shift (col, row) of b's image at a pixel of ``a``'s crop."""
+        return self.across * float(self.coeffs @ [1.0, col, row])
+
+    def to_dict(self) -> dict:
+        return {"constant_px": round(float(self.coeffs[0]), 3),
+                "drift_px_per_1000px": np.round(1000 * self.coeffs[1:], 3).tolist(),
+                "rms_px": round(self.rms, 3), "tie_points": self.ties}
+
+
+def fit_bias_model(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, d2: np.ndarray) -> BiasModel | None:
+    """The pair's :class:`BiasModel` from tie points (None: fewer than ``MIN_TIE_POINTS``).
+
+    The drift terms are kept when the ties span the image (at least 30 of them) and
+    they change the offset by more than 0.1 px across it.
+    """
+    offsets, across = _across_offsets(a, b, t1, t2, d2)
+    ok = np.isfinite(offsets)
+    if ok.sum() < MIN_TIE_POINTS:
+        return None
+    pos, off = t1[ok], offsets[ok]
+    design = np.column_stack([np.ones(len(off)), pos])
+    keep = np.abs(off - np.median(off)) < 3.0
+    coeffs = np.array([np.median(off[keep]), 0.0, 0.0])
+    if keep.sum() >= 30:
+        for _ in range(3):  # least squares, then drop the ties 3 robust sigmas off
+            fit = np.linalg.lstsq(design[keep], off[keep], rcond=None)[0]
+            res = off - design @ fit
+            sigma = max(1.4826 * float(np.median(np.abs(res[keep]))), 0.05)
+            keep = np.abs(res) <= 3 * sigma
+        span = np.abs(fit[1]) * a.width + np.abs(fit[2]) * a.height
+        if span > 0.1:
+            coeffs = fit
+        else:
+            coeffs = np.array([np.median(off[keep]), 0.0, 0.0])
+    res = off[keep] - design[keep] @ coeffs
+    return BiasModel(across, coeffs, float(np.sqrt(np.mean(res**2))), int(keep.sum()))
+
+
+def _across_offsets(a, b, t1, t2, d2):
+    """(k,) offsets (px) of tie points across b's epipolar lines from where the RPCs put them, and that direction."""
+    mid = float(np.mean(a.model.height_range))
+    lon, lat = a.localize(t1[:, 1], t1[:, 0], np.full(len(t1), mid))
+    r2, c2 = b.project(lon, lat, np.full(len(t1), mid))
+    across = np.array([-d2[1], d2[0]])
+    return (t2 - np.column_stack([c2, r2])) @ across, across
+
+
 def _bias_from_ties(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, d2: np.ndarray):
     """Shift (col, row) of b's RPC across the epipolar direction, from tie points.
 
@@ -515,12 +601,7 @@ def _bias_from_ties(a: RPCCamera, b: RPCCamera, t1: np.ndarray, t2: np.ndarray, 
     """
     if len(t1) < MIN_TIE_POINTS:
         return None, len(t1)
-    mid = float(np.mean(a.model.height_range))
-    lon, lat = a.localize(t1[:, 1], t1[:, 0], np.full(len(t1), mid))
-    r2, c2 = b.project(lon, lat, np.full(len(t1), mid))
-    residual = t2 - np.column_stack([c2, r2])
-    across = np.array([-d2[1], d2[0]])
-    offsets = residual @ across
+    offsets, across = _across_offsets(a, b, t1, t2, d2)
     offsets = offsets[np.isfinite(offsets)]
     if len(offsets) < MIN_TIE_POINTS:
         return None, len(offsets)
@@ -771,6 +852,7 @@ def dense_cloud_rpc(
     nfeatures = max(3000, int(3000 * area / SINGLE_TILE_MAX**2))
     t1, t2 = _tie_points(image_a, image_b, nfeatures=nfeatures)
     whole_shift, n_ties = _bias_from_ties(a, b, t1, t2, d2)  # None: too few tie points
+    model = fit_bias_model(a, b, t1, t2, d2)
     ties = triangulate_ties(a, b, t1, t2, np.zeros(2) if whole_shift is None else whole_shift)
     if len(ties.height) < MIN_TIE_POINTS and dem is None:
         raise InputError(
@@ -779,13 +861,14 @@ def dense_cloud_rpc(
             "give an elevation model with --dem"
         )
     floor = float(ties.height.min()) - SEARCH_MARGIN_M if len(ties.height) else -np.inf
+    limit = search_heights(ties.height) if len(ties.height) >= MIN_TIE_POINTS else None
     pieces, records, failures, samples, rejected = [], [], [], [], 0
     for k, (core, box) in enumerate(zip(cores, boxes)):
         try:
             search, why = _tile_search(a, b, box, ties, whole_shift, margin, len(cores) == 1, dem, dem_tolerance)
             piece, pair, (n_matched, n_core) = _tile_points(
                 a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin,
-                search=search, engine=engine, floor=floor,
+                search=search, engine=engine, floor=floor, model=model, limit=limit,
             )
         except InputError as exc:
             log.warning(
@@ -805,8 +888,9 @@ def dense_cloud_rpc(
                 "bias_from": pair.bias_from,
                 "bias_tie_points": pair.bias_ties,
                 "vertical_parallax_px": pair.parallax,
-                "search_heights_m": [round(search[0], 2), round(search[1], 2)],
-                "search_from": why,
+                "search_heights_m": [round(pair.heights[0], 2), round(pair.heights[1], 2)],
+                "search_from": why if tuple(pair.heights) == tuple(search) else
+                f"{why}; widened to the pair's (the surface reached an end of {search[0]:.0f}..{search[1]:.0f} m)",
                 "disparity_range": list(pair.disparity_range),
                 "disparity_mid": round(pair.disparity_mid, 2),
                 "affine_residual_px": round(pair.affine_residual_px, 4),
@@ -829,6 +913,7 @@ def dense_cloud_rpc(
     report = {
         **overlap,
         "relative_bias_px": np.round(np.zeros(2) if whole_shift is None else whole_shift, 3).tolist(),
+        "bias_model": None if model is None else model.to_dict(),
         "vertical_parallax_px": _parallax_summary(np.concatenate(samples), rejected),
         "affine_residual_px": round(max(r["affine_residual_px"] for r in records), 4),
         "disparity_range": _disparity_union(records),
@@ -915,7 +1000,8 @@ def _dem_range(a: RPCCamera, box, dem) -> tuple[float, float]:
 
 
 def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin, *,
-                 search, engine: str = "census", floor: float = -np.inf):
+                 search, engine: str = "census", floor: float = -np.inf, model: BiasModel | None = None,
+                 limit: tuple[float, float] | None = None):
     """Rectify, match and intersect one tile; the points of its core.
 
     Parameters
@@ -931,6 +1017,12 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     engine : str
     floor : float
         Points lower than this (m) are dropped.
+    model : BiasModel or None
+        The pair's bias model: the tile's bias where its own ties are too few or
+        disagree with it (None: ``whole_shift``).
+    limit : (float, float) or None
+        The heights of the whole pair, searched when the tile's disparities pile up at
+        an end of ``search`` (see :func:`_widened`); ``pair.heights`` is what was searched.
 
     Returns
     -------
@@ -972,12 +1064,18 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     )
     local_ties = (t1[sel] - [c0, r0], t2[sel] - bbox[:2])
     local_core = np.asarray(core) - [c0, r0, c0, r0]
-    pair = rectify_rpc_pair(
-        sa, sb, tile_a, tile_b, ties=local_ties, fallback_shift=whole_shift, core=None if whole else local_core,
-        heights=search,
-    )
-    lo, hi = pair.disparity_range
-    result = match(pair.left, pair.right, MatchParams(min_disparity=lo, max_disparity=hi + 1, engine=engine))
+    fallback = whole_shift if model is None or whole else model.at(0.5 * (c0 + c1), 0.5 * (r0 + r1))
+    while True:
+        pair = rectify_rpc_pair(sa, sb, tile_a, tile_b, ties=local_ties, core=None if whole else local_core,
+                                fallback_shift=fallback, heights=search)
+        lo, hi = pair.disparity_range
+        result = match(pair.left, pair.right, MatchParams(min_disparity=lo, max_disparity=hi + 1, engine=engine))
+        wider = _widened(result.disparity, lo, hi, search, limit)
+        if wider == search:
+            break
+        log.info("RPC pair %s-%s, tile %d: the surface reaches the searched heights' end; %s -> %s m",
+                 a.name, b.name, k, np.round(search, 1).tolist(), np.round(wider, 1).tolist())
+        search = wider
     y, x = np.nonzero(np.isfinite(result.disparity))
     d = result.disparity[y, x]
     matched = ~result.filled[y, x] if result.filled is not None else np.ones(len(d), bool)
@@ -994,6 +1092,25 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     if not ok.any():
         raise InputError(f"{sa.name}: nothing matched")
     return (lon[ok], lat[ok], h[ok], conf[ok], matched[ok]), pair, counts
+
+
+#: Share of a tile's disparities within a pixel and a half of an end of the searched
+#: range above which the surface is taken to reach beyond it.
+AT_END_SHARE = 0.01
+
+
+def _widened(disparity: np.ndarray, lo: int, hi: int, search, limit) -> tuple[float, float]:
+    """The heights to search again: ``limit`` (the whole pair's) joined to ``search``
+    when more than :data:`AT_END_SHARE` of the disparities pile up against an end of
+    the range ``lo..hi`` (a valley or a peak the tile's tie points missed); ``search``
+    itself when they do not."""
+    d = disparity[np.isfinite(disparity)]
+    if d.size == 0 or limit is None:
+        return search
+    at_lo, at_hi = np.mean(d <= lo + 1.5), np.mean(d >= hi - 1.5)
+    if max(at_lo, at_hi) <= AT_END_SHARE:
+        return search
+    return (min(search[0], limit[0]), max(search[1], limit[1]))
 
 
 def _on_data(image: np.ndarray, p: np.ndarray) -> np.ndarray:
