@@ -67,7 +67,7 @@ def run_cars(folder: Path, out: Path, cars: str, city) -> dict:
                            "-o", str(out), "--cars", cars], capture_output=True, text=True)
     if done.returncode != 0:
         return {"error": (done.stderr or done.stdout)[-300:]}
-    dsm_path = Path(done.stdout.strip().splitlines()[-1].split()[-1])
+    dsm_path = Path(next(line for line in done.stdout.splitlines() if line.startswith("DSM: "))[5:].strip())
     dsm = read_raster(dsm_path)
     score = score_stereo(folder, dsm, city=city)
     score["seconds"] = round(time.perf_counter() - t, 1)

@@ -187,3 +187,20 @@ def test_tiles_stitch_without_loss(mountain, tmp_path):
     assert score["dsm_nmad"] <= whole["dsm_nmad"] + 0.05
     assert score["observed"] >= whole["observed"] - 2.0
     assert score["coverage"] >= 99.0
+
+
+def test_self_check_against_the_tie_points(mountain):
+    """Every run compares the dense disparities with the SIFT tie points; a contradiction stops it."""
+    from recon3d.errors import InputError
+    from recon3d.stereo.satellite import tie_self_check
+
+    _, state, _ = mountain
+    check = state.auto["stereo"]["self_check"]
+    assert check["tie_points"] >= 100 and check["median_px"] < 0.4  # measured 0.16 px
+    assert check["within_1px_percent"] >= 90.0  # measured 98.6 %
+    ok, warning = tie_self_check(np.full(50, 0.2), 1.0, "a and b")
+    assert warning is None and ok["within_1px_percent"] == 100.0
+    _, warning = tie_self_check(np.r_[np.full(30, 0.2), np.full(20, 1.5)], 1.0, "a and b")
+    assert "60 % of 50 tie points" in warning
+    with pytest.raises(InputError, match="contradicts the pair's own tie points"):
+        tie_self_check(np.full(50, 3.0), 1.2, "a and b")

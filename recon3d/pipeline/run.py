@@ -328,6 +328,8 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
         a, b, *images, tile_size=cfg.tile_size, engine=cfg.engine, dem=s.dem,
         dem_tolerance=cfg.dem_tolerance + (cfg.max_object_height or SATELLITE_OBJECT_HEIGHT),
     )
+    if report.get("self_check_warning"):
+        s.warn(report["self_check_warning"])
     for f in report["tiles"]["failures"]:
         s.warn(f"satellite tile {f['tile']} (pixels {f['core']} of {a.image_path.name}) failed: {f['reason']}")
     if report["matched_percent"] < MIN_SATELLITE_MATCHED:
@@ -640,6 +642,8 @@ def find_buildings(s: RunState) -> None:
         if s.satellite_paths is not None and s.dsm_unobserved is not None:  # only where matched
             ndsm = Raster(np.where(s.dsm_unobserved, np.nan, s.ndsm.data), s.ndsm.transform, s.ndsm.crs, s.ndsm.tags)
         polygons = detect.detect_buildings(ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation)
+        if s.satellite_paths is not None and s.dsm_unobserved is not None:
+            polygons = _on_observed_ground(s, polygons)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
         attrs = [{"source": "detected", **_rounded(detect.blob_descriptors(p))} for p in polygons]
     s.labels = detect.label_footprints(polygons, s.dsm)
@@ -657,6 +661,33 @@ def find_buildings(s: RunState) -> None:
     # the date of the data, not of the run: the same input gives the same bytes
     meta = {"referenceDate": s.reference_date} if s.reference_date else {}
     s.city = CityModel(buildings, s.cloud.crs, LocalFrame.around(lo, step=u.length(100.0)), meta)
+
+
+#: Least share of the ring of cells around a detected satellite building (2 to 6 m out)
+#: that must hold matched observations: a "building" amid filled-in cells stands on
+#: terrain nobody saw.
+MIN_OBSERVED_RING = 0.5
+
+
+def _on_observed_ground(s: RunState, polygons: list) -> list:
+    """The detected outlines whose surrounding terrain was observed (see :data:`MIN_OBSERVED_RING`)."""
+    from scipy import ndimage
+
+    if not polygons:
+        return polygons
+    labels = detect.label_footprints(polygons, s.dsm)
+    near = int(np.ceil(s.units.length(2.0) / s.dsm.resolution))
+    far = int(np.ceil(s.units.length(6.0) / s.dsm.resolution))
+    reach = ndimage.grey_dilation(labels, size=2 * far + 1)  # the label of a building within 6 m
+    close = ndimage.grey_dilation(labels, size=2 * near + 1) > 0
+    ring = (reach > 0) & ~close
+    seen = ring & np.isfinite(s.dsm.data) & ~s.dsm_unobserved
+    n = len(polygons) + 1
+    share = np.bincount(reach[seen], minlength=n) / np.maximum(np.bincount(reach[ring], minlength=n), 1)
+    keep = share[1:] >= MIN_OBSERVED_RING
+    if not keep.all():
+        s.notes.append(f"{int((~keep).sum())} detected buildings dropped: the terrain around them was not matched")
+    return [p for p, k in zip(polygons, keep, strict=True) if k]
 
 
 def _rounded(values: dict) -> dict:

@@ -107,6 +107,11 @@ def _satellite_section(stereo: dict) -> str:
             f"within {ties.get('epipolar_tolerance_px', '?')} px of their epipolar curves, heights "
             f"{stereo.get('tie_heights_m')} m; {stereo.get('matched_percent')} % of the overlap matched "
             "(the rest filled in: no DTM and no building from it).</p>")
+    check = stereo.get("self_check") or {}
+    if check.get("tie_points"):
+        note += (f"<p class=small>Self-check: at {check['tie_points']} tie points the dense disparities differ from "
+                 f"SIFT's by {check['median_px']} px (median; {check['median_m']} m), {check['within_1px_percent']} % "
+                 "within 1 px.</p>")
     return (
         "<h2>Satellite pair: tiles</h2><table><tr>" + "".join(f"<th>{h}</th>" for h in head)
         + f"</tr>{''.join(rows)}</table>{note}"

@@ -45,6 +45,7 @@ __all__ = [
     "dense_cloud_rpc",
     "rectify_rpc_pair",
     "search_heights",
+    "tie_self_check",
     "tile_grid",
     "triangulate_ties",
     "utm_crs",
@@ -92,6 +93,8 @@ class SatellitePair:
     affine_residual_px : float
         Largest row difference (px) left by the affine approximation on a 15 x 15 grid of
         RPC correspondences over the crop at 5 heights: what tiling keeps small.
+    tie_check : (k,) float
+        After matching: |dense - tie| disparities (px) at the tie points of the core.
     """
 
     left: np.ndarray
@@ -107,6 +110,7 @@ class SatellitePair:
     parallax_samples: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     disparity_mid: float = 0.0
     affine_residual_px: float = 0.0
+    tie_check: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 def utm_crs(lon: float, lat: float) -> pyproj.CRS:
@@ -862,13 +866,13 @@ def dense_cloud_rpc(
         )
     floor = float(ties.height.min()) - SEARCH_MARGIN_M if len(ties.height) else -np.inf
     limit = search_heights(ties.height) if len(ties.height) >= MIN_TIE_POINTS else None
-    pieces, records, failures, samples, rejected = [], [], [], [], 0
+    pieces, records, failures, samples, rejected, tie_diffs, scale = [], [], [], [], 0, [], []
     for k, (core, box) in enumerate(zip(cores, boxes)):
         try:
             search, why = _tile_search(a, b, box, ties, whole_shift, margin, len(cores) == 1, dem, dem_tolerance)
             piece, pair, (n_matched, n_core) = _tile_points(
                 a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin,
-                search=search, engine=engine, floor=floor, model=model, limit=limit,
+                search=search, engine=engine, floor=floor, model=model, limit=limit, checked=ties,
             )
         except InputError as exc:
             log.warning(
@@ -879,6 +883,9 @@ def dense_cloud_rpc(
             continue
         pieces.append(piece)
         samples.append(pair.parallax_samples)
+        tie_diffs.append(pair.tie_check)
+        span = max(pair.disparity_range[1] - pair.disparity_range[0] - 4, 1)
+        scale.append(abs(pair.heights[1] - pair.heights[0]) / span)
         rejected += pair.parallax["rejected"]
         records.append(
             {
@@ -903,6 +910,7 @@ def dense_cloud_rpc(
     if not pieces:
         reasons = "; ".join(sorted({f["reason"] for f in failures}))
         raise InputError(f"images {a.name} and {b.name}: no tile could be matched ({reasons})")
+    self_check, warning = tie_self_check(np.concatenate(tie_diffs), float(np.median(scale)), f"{a.name} and {b.name}")
     lon, lat, h, conf, seen = (np.concatenate([p[i] for p in pieces]) for i in range(5))
     crs = utm_crs(float(np.nanmedian(lon)), float(np.nanmedian(lat)))
     east, north = pyproj.Transformer.from_crs(4326, crs, always_xy=True).transform(lon, lat)
@@ -927,6 +935,8 @@ def dense_cloud_rpc(
         "tie_heights_m": [round(float(ties.height.min()), 2), round(float(ties.height.max()), 2)] if len(ties.height) else None,
         "lowest_height_kept_m": round(floor, 2) if np.isfinite(floor) else None,
         "matched_percent": matched_percent,
+        "self_check": self_check,
+        "self_check_warning": warning,
         "matching": {"engine": engine, "intensity_weight": SATELLITE_INTENSITY_WEIGHT,
                      "reason": "satellite pan images: half the frame images' intensity weight (see "
                      "recon3d.stereo.satellite.SATELLITE_INTENSITY_WEIGHT)"},
@@ -1004,7 +1014,7 @@ def _dem_range(a: RPCCamera, box, dem) -> tuple[float, float]:
 
 def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin, *,
                  search, engine: str = "census", floor: float = -np.inf, model: BiasModel | None = None,
-                 limit: tuple[float, float] | None = None):
+                 limit: tuple[float, float] | None = None, checked: TiePoints | None = None):
     """Rectify, match and intersect one tile; the points of its core.
 
     Parameters
@@ -1026,6 +1036,9 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     limit : (float, float) or None
         The heights of the whole pair, searched when the tile's disparities pile up at
         an end of ``search`` (see :func:`_widened`); ``pair.heights`` is what was searched.
+    checked : TiePoints or None
+        The pair's tie points: those in the core are compared with the dense
+        disparities (``pair.tie_check``: (k,) absolute differences, px, where matched).
 
     Returns
     -------
@@ -1081,6 +1094,7 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
         log.info("RPC pair %s-%s, tile %d: the surface reaches the searched heights' end; %s -> %s m",
                  a.name, b.name, k, np.round(search, 1).tolist(), np.round(wider, 1).tolist())
         search = wider
+    pair.tie_check = _tie_check(pair, result, checked, core, box, bbox, a)
     y, x = np.nonzero(np.isfinite(result.disparity))
     d = result.disparity[y, x]
     matched = ~result.filled[y, x] if result.filled is not None else np.ones(len(d), bool)
@@ -1097,6 +1111,68 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     if not ok.any():
         raise InputError(f"{sa.name}: nothing matched")
     return (lon[ok], lat[ok], h[ok], conf[ok], matched[ok]), pair, counts
+
+
+def _tie_check(pair: SatellitePair, result, ties: TiePoints | None, core, box, bbox, a: RPCCamera) -> np.ndarray:
+    """(k,) |dense - tie| disparity (px) at the tile core's tie points where the pixel was matched.
+
+    The tie points' disparities come from SIFT, independently of the dense matcher: a
+    dense map that disagrees with them by pixels is wrong, whatever its own checks say.
+    """
+    if ties is None or len(ties.height) == 0:
+        return np.zeros(0)
+    c0, r0 = int(box[0]), int(box[1])
+    sel = ties.inside(core, bbox) & _in_core(ties.left, core, a.width, a.height)
+    q1 = _apply(pair.A1, ties.left[sel] - [c0, r0])
+    q2 = _apply(pair.A2, ties.right[sel] - bbox[:2])
+    col, row = np.rint(q1[:, 0]).astype(np.int64), np.rint(q1[:, 1]).astype(np.int64)
+    h, w = result.disparity.shape
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    dense = np.full(len(q1), np.nan)
+    dense[ok] = result.disparity[row[ok], col[ok]]
+    if result.filled is not None:
+        dense[ok] = np.where(result.filled[row[ok], col[ok]], np.nan, dense[ok])
+    diff = np.abs(dense - (q1[:, 0] - q2[:, 0]))
+    return diff[np.isfinite(diff)]
+
+
+#: Self-check against the tie points: a median difference (px) above this between the
+#: dense disparities and the tie points' stops the run; fewer than
+#: ``TIE_CHECK_WITHIN_1PX`` percent within 1 px gives a warning.
+TIE_CHECK_MAX_MEDIAN_PX = 2.0
+TIE_CHECK_WITHIN_1PX = 80.0
+
+
+def tie_self_check(diffs: np.ndarray, metres_per_px: float, names: str) -> tuple[dict, str | None]:
+    """Summary of the dense-vs-tie disparity differences, and a warning (or None).
+
+    Raises
+    ------
+    InputError
+        When at least 20 tie points were matched and their median difference exceeds
+        :data:`TIE_CHECK_MAX_MEDIAN_PX`: the dense surface contradicts the pair's own
+        tie points (wrong rectification, bias or matching).
+    """
+    if diffs.size == 0:
+        return {"tie_points": 0}, f"images {names}: no tie point fell on a matched pixel; the dense result is unchecked"
+    med = float(np.median(diffs))
+    check = {
+        "tie_points": int(diffs.size),
+        "median_px": round(med, 3),
+        "p90_px": round(float(np.percentile(diffs, 90)), 3),
+        "median_m": round(med * metres_per_px, 3),
+        "within_1px_percent": round(100.0 * float(np.mean(diffs <= 1.0)), 1),
+    }
+    if diffs.size >= 20 and med > TIE_CHECK_MAX_MEDIAN_PX:
+        raise InputError(
+            f"images {names}: the dense disparities differ from the {diffs.size} tie points' by {med:.1f} px "
+            f"(median, limit {TIE_CHECK_MAX_MEDIAN_PX} px, {check['median_m']:.1f} m): the matching contradicts the "
+            "pair's own tie points"
+        )
+    if check["within_1px_percent"] < TIE_CHECK_WITHIN_1PX:
+        return check, (f"images {names}: only {check['within_1px_percent']:.0f} % of {diffs.size} tie points lie within "
+                       f"1 px of the dense disparities (expected >= {TIE_CHECK_WITHIN_1PX:.0f} %)")
+    return check, None
 
 
 #: Weight of the census engine's intensity term on satellite images (1 on frame images).
