@@ -326,7 +326,7 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
     cfg = s.config.stereo
     cloud, report = dense_cloud_rpc(
         a, b, *images, tile_size=cfg.tile_size, engine=cfg.engine, dem=s.dem,
-        dem_tolerance=cfg.dem_tolerance + (cfg.max_object_height or SATELLITE_OBJECT_HEIGHT),
+        dem_tolerance=cfg.dem_tolerance + (cfg.max_object_height or SATELLITE_OBJECT_HEIGHT), progress=s.progress,
     )
     if report.get("self_check_warning"):
         s.warn(report["self_check_warning"])

@@ -786,6 +786,7 @@ def dense_cloud_rpc(
     engine: str = "census",
     dem=None,
     dem_tolerance: float = 20.0,
+    progress=None,
 ) -> tuple[PointCloud, dict]:
     """Rectify, match and intersect an RPC pair, tile by tile, into a cloud in its UTM zone.
 
@@ -816,6 +817,8 @@ def dense_cloud_rpc(
         tile's searched heights to its range under the tile, +- ``dem_tolerance``.
     dem_tolerance : float
         Metres the surface may stand above or lie below the DEM (objects, DEM error).
+    progress : callable or None
+        Called with ``"tile k/n"`` as each tile starts.
 
     Returns
     -------
@@ -868,6 +871,8 @@ def dense_cloud_rpc(
     limit = search_heights(ties.height) if len(ties.height) >= MIN_TIE_POINTS else None
     pieces, records, failures, samples, rejected, tie_diffs, scale = [], [], [], [], 0, [], []
     for k, (core, box) in enumerate(zip(cores, boxes)):
+        if progress is not None:
+            progress(f"tile {k + 1}/{len(cores)}")
         try:
             search, why = _tile_search(a, b, box, ties, whole_shift, margin, len(cores) == 1, dem, dem_tolerance)
             piece, pair, (n_matched, n_core) = _tile_points(
