@@ -9,13 +9,19 @@ footprints against the truth (:mod:`recon3d.synthetic.score`), beside:
   rectification, the matcher s2p also uses;
 - CARS (CNES), when ``--cars PATH`` names its ``cars`` executable (it lives in its own
   virtual environment: ``python -m venv v && v/bin/pip install cars``), through
-  ``scripts/peer_cars.py``.
+  ``scripts/peer_cars.py``;
+- s2p, when ``--s2p PATH`` names its ``s2p`` executable (its own virtual environment, see
+  ``scripts/peer_s2p.py`` for the build), through ``scripts/peer_s2p.py``.
+
+Peers' DSMs are scored on their own grids (CARS 0.5-0.7 m, s2p 0.5 m, recon3d 1 m by
+default) against the same truth; they make no DTM and no buildings.
 
 ``--giza`` also runs the shared Pleiades pair and prints the checks of issue 16 there.
 
     .venv/bin/python scripts/bench_satellite.py                      # 400 m scenes (880 px)
     .venv/bin/python scripts/bench_satellite.py --size 500 --only mountain
-    .venv/bin/python scripts/bench_satellite.py --cars /work/peers/.venv-cars/bin/cars --giza
+    .venv/bin/python scripts/bench_satellite.py --cars /work/peers/.venv-cars/bin/cars \
+        --s2p /work/peers/.venv-s2p/bin/s2p --giza
 """
 
 from __future__ import annotations
@@ -61,10 +67,11 @@ def run_recon3d(folder: Path, out: Path, config: PipelineConfig | None, city) ->
     return score
 
 
-def run_cars(folder: Path, out: Path, cars: str, city) -> dict:
+def run_peer(script: str, folder: Path, out: Path, option: str, executable: str, city) -> dict:
+    """A peer pipeline through its runner script (``peer_cars.py``, ``peer_s2p.py``), scored like recon3d."""
     t = time.perf_counter()
-    done = subprocess.run([sys.executable, str(HERE / "peer_cars.py"), str(folder / "img1.tif"), str(folder / "img2.tif"),
-                           "-o", str(out), "--cars", cars], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, str(HERE / script), str(folder / "img1.tif"), str(folder / "img2.tif"),
+                           "-o", str(out), option, executable], capture_output=True, text=True)
     if done.returncode != 0:
         return {"error": (done.stderr or done.stdout)[-300:]}
     dsm_path = Path(next(line for line in done.stdout.splitlines() if line.startswith("DSM: "))[5:].strip())
@@ -93,7 +100,7 @@ def print_rows(rows: list[dict]) -> None:
             print(f"{r['scene']:<10}{who:<14}" + "".join(cells))
 
 
-def bench_scene(name: str, size: float, tmp: Path, cars: str | None) -> dict:
+def bench_scene(name: str, size: float, tmp: Path, cars: str | None, s2p: str | None) -> dict:
     spec = dataclasses.replace(SATELLITE_SCENES[name], size=size)
     folder = tmp / name
     t = time.perf_counter()
@@ -107,7 +114,9 @@ def bench_scene(name: str, size: float, tmp: Path, cars: str | None) -> dict:
         except Exception as exc:  # a failure is a result too
             row["runs"][who] = {"error": str(exc)}
     if cars:
-        row["runs"]["cars"] = run_cars(folder, tmp / f"out-{name}-cars", cars, city)
+        row["runs"]["cars"] = run_peer("peer_cars.py", folder, tmp / f"out-{name}-cars", "--cars", cars, city)
+    if s2p:
+        row["runs"]["s2p"] = run_peer("peer_s2p.py", folder, tmp / f"out-{name}-s2p", "--s2p", s2p, city)
     return row
 
 
@@ -141,13 +150,14 @@ def main() -> None:
     parser.add_argument("--size", type=float, default=400.0, help="side of each scene (m); 0.5 m GSD")
     parser.add_argument("--only", nargs="*", choices=sorted(SATELLITE_SCENES), help="scenes to run")
     parser.add_argument("--cars", help="the cars executable, to run CARS on the same pairs")
+    parser.add_argument("--s2p", help="the s2p executable, to run s2p on the same pairs")
     parser.add_argument("--giza", action="store_true", help="also the checks on the shared Giza pair")
     parser.add_argument("--json", type=Path, help="write every figure here")
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.only or list(SATELLITE_SCENES):
-            rows.append(bench_scene(name, args.size, Path(tmp), args.cars))
+            rows.append(bench_scene(name, args.size, Path(tmp), args.cars, args.s2p))
             print_rows(rows[-1:])
         print()
         print_rows(rows)

@@ -12,8 +12,8 @@ import json
 import numpy as np
 import pytest
 import rasterio
-
 from conftest import copy_scene, run_fails
+
 from recon3d.io.geotiff import read_raster
 
 
@@ -65,15 +65,17 @@ def test_the_rpcs_fit_the_cameras(mountain):
 def test_dsm_against_the_truth(which, request):
     """Issue 16 targets: NMAD <= 0.5 m, |median| <= 0.3 m; the overlap matched, not filled."""
     folder, state, score = request.getfixturevalue(which)
-    # measured: mountain NMAD 0.36 m, median 0.15 m; town 0.34 m, 0.14 m
+    # measured: mountain NMAD 0.32 m, median -0.00 m; town 0.31 m, +0.05 m (highest point
+    # per cell instead of the median: medians +0.15 m, a noise sigma high)
     assert score["dsm_nmad"] <= 0.5
     assert abs(score["dsm_median"]) <= 0.3
     assert score["coverage"] >= 99.0
-    # measured 91 % (mountain: shadowed north faces) and 95 % of the common cells observed
-    assert score["observed"] >= 88.0
+    # measured 94 % (mountain: walls and steep faces one view does not see) and 96 % of
+    # the common cells observed
+    assert score["observed"] >= 90.0
     stereo = state.auto["stereo"]
-    assert stereo["matched_percent"] >= 80.0  # measured 84 and 91 % of the overlap's pixels
-    assert score["dsm_within_1m"] >= 85.0
+    assert stereo["matched_percent"] >= 82.0  # measured 89 and 93 % of the overlap's pixels
+    assert score["dsm_within_1m"] >= 87.0  # measured 91 %
 
 
 def test_heights_searched_are_the_tie_points(mountain):
@@ -95,7 +97,12 @@ def test_tie_points_are_on_the_surface(mountain):
     import pyproj
 
     from recon3d.io.rpc import read_rpc_camera
-    from recon3d.stereo.satellite import _bias_from_ties, _epipolar_geometry, _tie_points, triangulate_ties
+    from recon3d.stereo.satellite import (
+        _bias_from_ties,
+        _epipolar_geometry,
+        _tie_points,
+        triangulate_ties,
+    )
 
     folder, _, _ = mountain
     a, b = (read_rpc_camera(folder / f"img{i}.tif") for i in (1, 2))
@@ -123,8 +130,8 @@ def test_products_only_where_both_images_see(town):
     seen = views.sample(x.ravel(), y.ravel(), bilinear=False).reshape(dsm.shape)  # NaN off the truth grid
     outside = np.isfinite(dsm) & (seen < 2)  # cells not both images have in frame
     assert outside.sum() <= 0.002 * np.isfinite(dsm).sum()
-    # measured completeness 90 %, correctness 89 % of the truth footprints (full size)
-    assert score["footprint_completeness"] >= 75.0 and score["footprint_correctness"] >= 75.0
+    # measured completeness 92 %, correctness 90 % of the truth footprints
+    assert score["footprint_completeness"] >= 80.0 and score["footprint_correctness"] >= 80.0
 
 
 def test_dem_narrows_the_search(mountain, tmp_path):

@@ -388,7 +388,7 @@ def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int
     return dsm_stage.make_dsm(
         cloud, res, max_hole_cells=max_hole_cells, rim="low" if stereo else "mean",
         observed=observed, source=a.get("point_source_id") if observed is not None else None, area=area,
-        extent=extent,
+        extent=extent, per_source="median" if s.satellite_paths else "max",
     )
 
 

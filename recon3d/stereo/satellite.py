@@ -870,7 +870,7 @@ def dense_cloud_rpc(
     floor = float(ties.height.min()) - SEARCH_MARGIN_M if len(ties.height) else -np.inf
     limit = search_heights(ties.height) if len(ties.height) >= MIN_TIE_POINTS else None
     pieces, records, failures, samples, rejected, tie_diffs, scale = [], [], [], [], 0, [], []
-    for k, (core, box) in enumerate(zip(cores, boxes)):
+    for k, (core, box) in enumerate(zip(cores, boxes, strict=True)):
         if progress is not None:
             progress(f"tile {k + 1}/{len(cores)}")
         try:

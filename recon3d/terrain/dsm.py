@@ -105,7 +105,8 @@ def grid_points(
 
 
 def grid_stereo(
-    xyz: np.ndarray, transform, shape: tuple[int, int], *, observed: np.ndarray, source: np.ndarray | None = None
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, observed: np.ndarray, source: np.ndarray | None = None,
+    per_source: str = "max",
 ) -> np.ndarray:
     """Highest point per cell from stereo: observations first, pairs outvoting each other.
 
@@ -123,6 +124,11 @@ def grid_stereo(
     observed : (n,) bool
     source : (n,) int, optional
         Which pair each point comes from (one source when omitted).
+    per_source : {"max", "median"}
+        What a source gives a cell: its highest observed point (frame stereo: a
+        building's edge stays on the roof), or the median of them (several points of one
+        pair per cell, as satellite GSD against the cell size gives: the highest of
+        noisy heights would stand a noise sigma too high).
 
     Returns
     -------
@@ -141,8 +147,13 @@ def grid_stereo(
         return out
     order = np.lexsort((z, src, cell))  # by cell, then source, then height
     cell, src, z = cell[order], src[order], z[order]
-    top = np.r_[(cell[1:] != cell[:-1]) | (src[1:] != src[:-1]), True]  # highest of each (cell, source)
-    cell, z = cell[top], z[top]
+    first = np.r_[0, np.flatnonzero((cell[1:] != cell[:-1]) | (src[1:] != src[:-1])) + 1]
+    n = np.diff(np.r_[first, len(cell)])  # points of each (cell, source)
+    if per_source == "max":
+        z = z[first + n - 1]
+    else:
+        z = 0.5 * (z[first + (n - 1) // 2] + z[first + n // 2])
+    cell = cell[first]
     order = np.lexsort((z, cell))
     cell, z = cell[order], z[order]
     start = np.r_[0, np.flatnonzero(cell[1:] != cell[:-1]) + 1]
@@ -226,6 +237,7 @@ def make_dsm(
     source: np.ndarray | None = None,
     area=None,
     extent: tuple[np.ndarray, np.ndarray] | None = None,
+    per_source: str = "max",
 ) -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
@@ -234,7 +246,7 @@ def make_dsm(
     cells are gridded by :func:`grid_stereo`. ``area(raster)``, given the DSM before
     hole filling, returns the (rows, cols) bool cells the data should cover (see
     :func:`fill_small_holes`). ``extent`` (lowest, highest corner) replaces the cloud's
-    bounds as the area of the grid.
+    bounds as the area of the grid. ``per_source`` as in :func:`grid_stereo`.
     """
     keep = surface_points(cloud)
     xyz = cloud.xyz[keep]
@@ -244,8 +256,9 @@ def make_dsm(
         dsm, method = grid_points(xyz, transform, shape, reducer="max"), "highest point per cell"
     else:
         source = None if source is None else np.asarray(source)[keep]
-        dsm = grid_stereo(xyz, transform, shape, observed=np.asarray(observed, bool)[keep], source=source)
-        method = "highest observed point per cell and pair, median over the pairs"
+        dsm = grid_stereo(xyz, transform, shape, observed=np.asarray(observed, bool)[keep], source=source,
+                          per_source=per_source)
+        method = f"{'highest' if per_source == 'max' else 'median'} observed point per cell and pair, median over the pairs"
     raw = Raster(dsm, transform, cloud.crs)
     dsm = fill_small_holes(dsm, max_hole_cells, rim=rim, area=None if area is None else area(raw))
     return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": method})
