@@ -205,13 +205,11 @@ def export(out_dir, fmt, dest, overwrite):
       recon3d export out --format cityjsonseq
       recon3d export out --format glb -o city.glb
     """
-    from recon3d.errors import InputError
     from recon3d.io import cityjson, gltf, obj
 
     suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb"}[fmt]
     dest = dest or out_dir / f"buildings{suffix}"
-    if dest.exists() and not overwrite:
-        raise InputError(f"{dest}: exists; use --overwrite to replace it")
+    _refuse_existing([dest, dest.with_suffix(".mtl")] if fmt == "obj" else [dest], overwrite)  # OBJ writes its .mtl
     city = cityjson.read_cityjson(out_dir / "buildings.city.json")
     writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
                "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
@@ -236,15 +234,13 @@ def change(out_dir, old_buildings, overwrite):
       recon3d change out --old-buildings bati_2015.shp
     """
     from recon3d.core.geo import crs_units
-    from recon3d.errors import InputError
     from recon3d.io.cityjson import read_cityjson, write_cityjson
     from recon3d.io.geotiff import read_raster, write_raster
     from recon3d.io.vectors import read_footprints, write_features
     from recon3d.quality import change as change_mod
 
     target = out_dir / "changes.geojson"
-    if target.exists() and not overwrite:
-        raise InputError(f"{target}: exists; use --overwrite to replace it")
+    _refuse_existing([target, out_dir / "changes.tif", out_dir / "buildings_updated.city.json"], overwrite)
     city = read_cityjson(out_dir / "buildings.city.json")
     ndsm = read_raster(out_dir / "ndsm.tif")
     crs = city.crs or ndsm.crs
@@ -300,7 +296,8 @@ def evaluate():
 @click.option("--dtm", "dtm_path", type=click.Path(path_type=Path), help="DTM to check; default: dtm.tif beside CLOUD, if there.")
 @click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV x,y,z[,id][,kind] to check the DTM against.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path), help="Also write the numbers as JSON.")
-def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path):
+@click.option("--overwrite", is_flag=True, help="Replace the --json file if it exists.")
+def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path, overwrite):
     """Type I, Type II, total error and kappa of the ground in CLOUD, and the DTM's RMS.
 
     Points the provider labelled ground (2) are scored against vegetation and
@@ -319,6 +316,7 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
     from recon3d.io.las import read_las
     from recon3d.quality.evaluate import evaluate_ground as run_evaluation
 
+    _refuse_existing([json_path] if json_path else [], overwrite)
     user_crs = parse_crs(crs) if crs else None
     ref = read_las(reference, crs=user_crs)
     classified = read_las(cloud_path, crs=user_crs or ref.crs)
@@ -342,7 +340,8 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
 @click.option("--reference", required=True, type=click.Path(path_type=Path), help="Reference footprints (Shapefile, GeoPackage, GeoJSON, CityJSON) or a provider-classified LAS/LAZ (class 6).")
 @click.option("--crs", help="CRS of a reference LAS/LAZ without one.")
 @click.option("--json", "json_path", type=click.Path(path_type=Path), help="Also write the numbers as JSON.")
-def evaluate_buildings(out_dir, reference, crs, json_path):
+@click.option("--overwrite", is_flag=True, help="Replace the --json file if it exists.")
+def evaluate_buildings(out_dir, reference, crs, json_path, overwrite):
     """Completeness, correctness and quality (area and object, ISPRS 50 % rule) and outline RMS of OUT's buildings.
 
     Only the reference inside the run's data extent is scored.
@@ -360,6 +359,8 @@ def evaluate_buildings(out_dir, reference, crs, json_path):
     from recon3d.core.geo import crs_units, parse_crs
     from recon3d.io.cityjson import read_cityjson
     from recon3d.io.las import read_las
+
+    _refuse_existing([json_path] if json_path else [], overwrite)
     from recon3d.io.vectors import read_footprints
     from recon3d.quality import buildings as building_quality
 
@@ -388,6 +389,16 @@ def evaluate_buildings(out_dir, reference, crs, json_path):
 
         with atomic_path(json_path) as tmp:
             tmp.write_text(json.dumps(result, indent=2, default=str), encoding="utf-8")
+
+
+def _refuse_existing(paths: list[Path], overwrite: bool) -> None:
+    """One error naming every file of ``paths`` that exists, unless ``overwrite``."""
+    from recon3d.errors import InputError
+
+    existing = [str(p) for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise InputError(f"{', '.join(existing)}: {'exist' if len(existing) > 1 else 'exists'}; "
+                         "use --overwrite to replace")
 
 
 class _StageProgress:
@@ -439,6 +450,30 @@ def _echo_accuracy(rows: list[dict]) -> None:
             )
 
 
+class Terminated(SystemExit):
+    """SIGTERM, raised in the main thread so that every ``finally`` cleans up."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated(143)
+
+
 def main() -> None:
-    """Console-script entry point."""
-    cli(prog_name="recon3d")
+    """Console-script entry point: errors as one line (exit 1), Ctrl-C exit 130, SIGTERM 143."""
+    import signal
+
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        cli(prog_name="recon3d", standalone_mode=False)
+    except click.exceptions.Abort:  # Ctrl-C inside a prompt or click's own handling
+        click.echo("recon3d: interrupted", err=True)
+        sys.exit(130)
+    except KeyboardInterrupt:
+        click.echo("recon3d: interrupted", err=True)
+        sys.exit(130)
+    except Terminated:
+        click.echo("recon3d: interrupted (terminated)", err=True)
+        sys.exit(143)
+    except click.exceptions.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)

@@ -74,8 +74,17 @@ def map_ordered(
         results = (func(job) for job in jobs)
         return _collect(results, done)
     method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context(method)) as pool:
-        return _collect(pool.map(func, jobs, chunksize=1), done)
+    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context(method))
+    try:
+        results = _collect(pool.map(func, jobs, chunksize=1), done)
+    except BaseException:  # Ctrl-C, SIGTERM, an error: stop now, not after every queued job
+        processes = list(getattr(pool, "_processes", {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        raise
+    pool.shutdown()
+    return results
 
 
 def _collect(results: Iterable[Any], done: Callable[[int], None] | None) -> list[Any]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -35,6 +34,7 @@ from recon3d.io import checkpoints as checkpoints_io
 from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
 from recon3d.io.las import las_date, read_las, write_las
+from recon3d.pipeline import output
 from recon3d.pipeline.executor import default_workers, map_ordered
 from recon3d.quality import evaluate
 from recon3d.quality.rasterize import render, surface_at
@@ -173,11 +173,6 @@ def run(
     InputError
         Bad input or an existing output folder; nothing is written then.
     """
-    out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
-        raise InputError(f"{out_dir}: output folder exists and is not empty; use --overwrite to replace it")
-    work_dir = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
-    shutil.rmtree(work_dir, ignore_errors=True)
     pair = None
     if isinstance(input_path, tuple | list):
         if len(input_path) == 1:
@@ -187,6 +182,12 @@ def run(
             input_path = pair[0]
         else:
             raise InputError(f"expected one input or two satellite images, got {len(input_path)} inputs")
+    given = [input_path, *(pair or ()), footprints, checkpoints, breaklines, altimetry, dem, truth_dsm,
+             old_buildings, gcps]
+    out_dir = output.check_output(Path(out_dir), [Path(p) for p in given if p], overwrite=overwrite)
+    stale = output.remove_stale(out_dir)
+    created = [p for p in (out_dir.parent, *out_dir.parent.parents) if not p.exists()]  # deepest first
+    work_dir = output.work_folder(out_dir)
     state = RunState(
         input_path=Path(input_path),
         satellite_paths=pair,
@@ -204,6 +205,7 @@ def run(
         gcps_path=Path(gcps) if gcps else None,
         workers=workers,
     )
+    state.notes += stale
     try:
         for index, (name, stage) in enumerate(STAGES):
             if progress:
@@ -217,7 +219,15 @@ def run(
         from recon3d.report import write_report
 
         write_report(work_dir)
-        _publish(work_dir, out_dir)
+        output.publish(work_dir, out_dir)
+    except BaseException:
+        shutil.rmtree(work_dir, ignore_errors=True)
+        for folder in created:  # a failed run leaves nothing, not even the folders it made
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
     finally:
         shutil.rmtree(work_dir, ignore_errors=True)
     return state
@@ -1034,12 +1044,4 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
-def _publish(work_dir: Path, out_dir: Path) -> None:
-    """Move the finished work folder onto ``out_dir``, replacing an old one last."""
-    old = None
-    if out_dir.exists():
-        old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-        os.replace(out_dir, old)
-    os.replace(work_dir, out_dir)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+

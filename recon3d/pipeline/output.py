@@ -1,0 +1,148 @@
+"""The output folder of a run: checked first, built aside, published in one step.
+
+A run never writes into its output folder while it works. It checks the folder before
+anything is read (not the input itself, not inside or around any input, not a
+non-empty folder without ``--overwrite``), builds the products in a private work folder
+beside it (``tempfile.mkdtemp``: an unpredictable name, mode 0700, so a planted
+symlink cannot redirect it), and publishes it by swapping it with the old output in
+one ``renameat2(RENAME_EXCHANGE)`` call: whenever the process dies, the output folder
+holds the old run or the new one. Work folders left by killed runs are removed by the
+next run of the same output, which says so.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from recon3d.errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["check_output", "publish", "remove_stale", "work_folder"]
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def check_output(out_dir: Path, inputs: list[Path], *, overwrite: bool) -> Path:
+    """The resolved output folder, after checking it may be (re)placed.
+
+    Raises
+    ------
+    InputError
+        When ``out_dir`` is an input, holds an input (``--overwrite`` would delete it),
+        lies inside an input folder, is a file, or is a non-empty folder and
+        ``overwrite`` is False.
+    """
+    out = Path(out_dir).expanduser().resolve()
+    for given in inputs:
+        inp = Path(given).expanduser().resolve()
+        if out == inp:
+            raise InputError(f"{out_dir}: the output folder is the input {given}; choose another -o")
+        if out in inp.parents:
+            raise InputError(
+                f"{out_dir}: the output folder holds the input {given}; replacing it would delete the input. "
+                "Choose another -o"
+            )
+        if inp in out.parents:
+            raise InputError(f"{out_dir}: the output folder lies inside the input {given}; choose another -o")
+    if out == Path(out.anchor):
+        raise InputError(f"{out_dir}: the output folder cannot be a file system's root")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a folder")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"{out_dir}: output folder exists and is not empty; use --overwrite to replace it")
+    parent = out.parent
+    if parent.exists() and not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{out_dir}: cannot write in {parent} (permission denied)")
+    return out
+
+
+def _prefix(out: Path, kind: str) -> str:
+    return f".{out.name}.{kind}-{os.getpid()}-"
+
+
+def work_folder(out: Path) -> Path:
+    """A new private folder beside ``out`` (created with its parents), for the run's products."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix=_prefix(out, "partial"), dir=out.parent))
+
+
+def remove_stale(out: Path) -> list[str]:
+    """Remove work folders of earlier runs of ``out`` whose process is gone; a note for each."""
+    notes = []
+    if not out.parent.is_dir():
+        return notes
+    for path in sorted(out.parent.glob(f".{out.name}.*-*-*")):
+        kind, _, rest = path.name[len(out.name) + 2 :].partition("-")
+        pid = rest.split("-", 1)[0]
+        if kind not in ("partial", "old") or not pid.isdigit() or _alive(int(pid)) or path.is_symlink():
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        notes.append(f"removed {path.name}, left beside {out.name} by a run that was killed (process {pid})")
+        log.info(notes[-1])
+    return notes
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def publish(work_dir: Path, out: Path) -> None:
+    """Put the finished ``work_dir`` at ``out``, replacing an old output in one atomic swap.
+
+    Where the file system cannot swap (no ``renameat2``), the old output is renamed
+    aside first and put back should the second rename fail.
+    """
+    if not out.exists():
+        os.rename(work_dir, out)
+        return
+    if _exchange(work_dir, out):
+        _remove(work_dir)  # now the old output
+        return
+    old = Path(tempfile.mkdtemp(prefix=_prefix(out, "old"), dir=out.parent))
+    os.replace(out, old / "run")
+    try:
+        os.rename(work_dir, out)
+    except OSError:
+        os.replace(old / "run", out)
+        raise
+    finally:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux ``renameat2``); False where it is not supported."""
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError, TypeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
