@@ -50,7 +50,7 @@ GIZA = HERE.parent.parent / "shared" / "data" / "stereo" / "pleiades_gizeh"
 KHUFU = (31.134225, 29.979175)  # lon, lat of the Great Pyramid's apex
 
 
-def run_recon3d(folder: Path, out: Path, config: PipelineConfig | None, city) -> dict:
+def run_recon3d(folder: Path, out: Path, config: PipelineConfig | None, city):
     t = time.perf_counter()
     truth = folder / "truth"
     state = run((folder / "img1.tif", folder / "img2.tif"), out, checkpoints=truth / "checkpoints.csv",
@@ -64,21 +64,44 @@ def run_recon3d(folder: Path, out: Path, config: PipelineConfig | None, city) ->
     score.update(seconds=round(time.perf_counter() - t, 1), stereo_seconds=state.timings.get("stereo"),
                  matched_percent=stereo.get("matched_percent"), buildings=len(state.city),
                  truth_buildings=len(city.buildings), warnings=state.warnings)
-    return score
+    return score, state.dsm
 
 
-def run_peer(script: str, folder: Path, out: Path, option: str, executable: str, city) -> dict:
+def run_peer(script: str, folder: Path, out: Path, option: str, executable: str, city):
     """A peer pipeline through its runner script (``peer_cars.py``, ``peer_s2p.py``), scored like recon3d."""
     t = time.perf_counter()
     done = subprocess.run([sys.executable, str(HERE / script), str(folder / "img1.tif"), str(folder / "img2.tif"),
                            "-o", str(out), option, executable], capture_output=True, text=True)
     if done.returncode != 0:
-        return {"error": (done.stderr or done.stdout)[-300:]}
+        raise RuntimeError((done.stderr or done.stdout)[-300:])
     dsm_path = Path(next(line for line in done.stdout.splitlines() if line.startswith("DSM: "))[5:].strip())
     dsm = read_raster(dsm_path)
     score = score_stereo(folder, dsm, city=city)
     score["seconds"] = round(time.perf_counter() - t, 1)
-    return score
+    return score, dsm
+
+
+def on_common_cells(folder: Path, dsms: dict) -> dict:
+    """Each DSM's error on the truth grid, over the cells both images see and every DSM fills.
+
+    Pipelines that leave occlusions empty (s2p) score their own, easier cells in the
+    main table; here every pipeline is measured on the same cells.
+    """
+    from recon3d.synthetic.score import _on_grid
+
+    truth = read_raster(folder / "truth" / "dsm.tif")
+    views = _on_grid(read_raster(folder / "truth" / "views.tif"), truth)
+    on = {who: _on_grid(dsm, truth) for who, dsm in dsms.items()}
+    cells = (views >= 2) & np.isfinite(truth.data) & np.all([np.isfinite(v) for v in on.values()], axis=0)
+    out = {}
+    for who, z in on.items():
+        e = (z - truth.data)[cells]
+        med = float(np.median(e))
+        out[who] = {"share_of_common_percent": round(100.0 * float(cells.sum() / max((views >= 2).sum(), 1)), 1),
+                    "median": round(med, 3), "nmad": round(float(1.4826 * np.median(np.abs(e - med))), 3),
+                    "within_1m": round(100.0 * float(np.mean(np.abs(e) <= 1.0)), 2),
+                    "rms": round(float(np.sqrt(np.mean(e**2))), 3)}
+    return out
 
 
 COLUMNS = [
@@ -108,16 +131,28 @@ def bench_scene(name: str, size: float, tmp: Path, cars: str | None, s2p: str | 
     row = {"scene": name, "pixels": made["cameras"][0].width, "render_s": round(time.perf_counter() - t, 1), "runs": {}}
     city = scene_city(folder)
     sgbm = PipelineConfig().with_overrides(["stereo.engine=sgbm"])
-    for who, config in (("recon3d", None), ("recon3d-sgbm", sgbm)):
-        try:
-            row["runs"][who] = run_recon3d(folder, tmp / f"out-{name}-{who}", config, city)
-        except Exception as exc:  # a failure is a result too
-            row["runs"][who] = {"error": str(exc)}
+    runs = {"recon3d": lambda: run_recon3d(folder, tmp / f"out-{name}-recon3d", None, city),
+            "recon3d-sgbm": lambda: run_recon3d(folder, tmp / f"out-{name}-sgbm", sgbm, city)}
     if cars:
-        row["runs"]["cars"] = run_peer("peer_cars.py", folder, tmp / f"out-{name}-cars", "--cars", cars, city)
+        runs["cars"] = lambda: run_peer("peer_cars.py", folder, tmp / f"out-{name}-cars", "--cars", cars, city)
     if s2p:
-        row["runs"]["s2p"] = run_peer("peer_s2p.py", folder, tmp / f"out-{name}-s2p", "--s2p", s2p, city)
+        runs["s2p"] = lambda: run_peer("peer_s2p.py", folder, tmp / f"out-{name}-s2p", "--s2p", s2p, city)
+    dsms = {}
+    for who, job in runs.items():
+        try:
+            row["runs"][who], dsms[who] = job()
+        except Exception as exc:  # a failure is a result too
+            row["runs"][who] = {"error": str(exc)[-300:]}
+    row["common_cells"] = on_common_cells(folder, dsms)
     return row
+
+
+def print_common(rows: list[dict]) -> None:
+    print(f"{'scene':<10}{'who':<14}{'cells%':>9}{'median':>9}{'NMAD':>9}{'<=1m%':>9}{'RMS':>9}   (same cells for all)")
+    for r in rows:
+        for who, c in r.get("common_cells", {}).items():
+            print(f"{r['scene']:<10}{who:<14}{c['share_of_common_percent']:>9.1f}{c['median']:>9.3f}{c['nmad']:>9.3f}"
+                  f"{c['within_1m']:>9.2f}{c['rms']:>9.3f}")
 
 
 def giza_checks(tmp: Path) -> dict:
@@ -161,6 +196,8 @@ def main() -> None:
             print_rows(rows[-1:])
         print()
         print_rows(rows)
+        print()
+        print_common(rows)
         result = {"scenes": rows}
         if args.giza:
             result["giza"] = giza_checks(Path(tmp))
