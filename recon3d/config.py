@@ -116,6 +116,12 @@ class DsmConfig:
     resolution: float | None = None
     max_hole_area: float | None = None
 
+    def __post_init__(self) -> None:
+        if self.resolution is not None and not (0.01 <= self.resolution <= 1000.0):
+            raise InputError(f"dsm.resolution {self.resolution}: between 0.01 and 1000 (metres), or unset for automatic")
+        if self.max_hole_area is not None and not (0.0 <= self.max_hole_area <= 1e8):
+            raise InputError(f"dsm.max_hole_area {self.max_hole_area}: between 0 and 1e8 (m2), or unset for automatic")
+
 
 @dataclass(frozen=True)
 class GroundConfig:
@@ -255,6 +261,21 @@ class LodConfig:
     max_roof_rms: float = 0.5
     lod13_step: float = 1.0
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = [v for v in self.lods if v not in LODS]
+        if unknown or not self.lods:
+            raise InputError(f"lod.lods {list(self.lods)}: choose among {', '.join(LODS)}")
+        for name in ("plane_distance", "min_plane_area", "max_roof_rms", "lod13_step"):
+            value = getattr(self, name)
+            if not (0.0 < value < 1e6):
+                raise InputError(f"lod.{name} {value}: must be a positive number of metres (or m2)")
+        if self.min_plane_points < 3 or self.max_planes < 1:
+            raise InputError("lod.min_plane_points must be >= 3 and lod.max_planes >= 1")
+
+
+#: Levels of detail :class:`LodConfig` can build.
+LODS = ("1", "1.3", "2.2")
 
 
 @dataclass(frozen=True)

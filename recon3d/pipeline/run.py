@@ -436,6 +436,7 @@ def make_dsm(s: RunState) -> None:
         world = s.scene.sparse + s.scene.offset
         extent = (np.minimum(s.cloud.bounds[0], world.min(axis=0)), np.maximum(s.cloud.bounds[1], world.max(axis=0)))
     s.dsm_extent = extent
+    _check_grid_memory(s, extent or s.cloud.bounds, res)
     s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2),
                       area=common_area if frame_stereo else None, extent=extent)
     gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
@@ -457,6 +458,44 @@ def make_dsm(s: RunState) -> None:
             s.dsm_unobserved &= s.common_area
     if frame_stereo and s.common_area is not None:
         _check_common_area(s)
+
+
+#: Bytes per DSM cell the raster stages hold at their peak (DSM, DTM, nDSM, masks,
+#: filters' working copies: about twenty float64 grids).
+GRID_BYTES_PER_CELL = 160
+
+
+def _check_grid_memory(s: RunState, extent, res: float) -> None:
+    """Refuse a product grid that would not fit in the memory available, before allocating it."""
+    lo, hi = (np.asarray(v, np.float64) for v in extent)
+    cells = float(np.ceil((hi[0] - lo[0]) / res + 1) * np.ceil((hi[1] - lo[1]) / res + 1))
+    need = cells * GRID_BYTES_PER_CELL
+    available = available_memory()
+    if need > available:
+        raise InputError(
+            f"{s.input_path}: a DSM of {cells:.3g} cells of {res:g} {s.units.name} needs about "
+            f"{need / 2**30:.1f} GiB, more than the {available / 2**30:.1f} GiB available; "
+            "choose coarser cells (--set dsm.resolution=...) or cut the input into tiles"
+        )
+
+
+def available_memory() -> float:
+    """Bytes of memory this process can still use: MemAvailable, or the cgroup's limit if lower."""
+    available = float("inf")
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                available = float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = float(Path("/sys/fs/cgroup/memory.current").read_text())
+            available = min(available, float(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return available
 
 
 #: Least share (percent) of the area two images both see that a frame-stereo DSM must
