@@ -1,8 +1,8 @@
 """Settings outside their valid range, and grids too large for memory: one clear error, nothing written."""
 
 import pytest
-
 from conftest import AUTZEN, shared
+
 from recon3d.config import PipelineConfig
 from recon3d.errors import InputError
 
