@@ -513,6 +513,8 @@ def read_cityjson(
 
     path = require_file(path, "CityJSON")
     docs = _read_documents(path)
+    if not docs or not all(isinstance(d, dict) for d in docs):
+        raise InputError(f"{path}: not CityJSON (the top level is not a JSON object)")
     head = docs[0]
     if head.get("type") != "CityJSON" or str(head.get("version")) not in ("1.1", "2.0"):
         raise InputError(f"{path}: not CityJSON 1.1 or 2.0 (type {head.get('type')!r}, version {head.get('version')!r})")
@@ -536,18 +538,11 @@ def read_cityjson(
     }
     buildings = []
     for oid, (obj, base) in objects.items():
-        kind = obj.get("type")
-        if kind == "Building" and oid not in split:
-            b = _building(oid, obj, base, objects, local, frame)
-        elif kind == "BuildingPart" and obj.get("parents") and obj["parents"][0] in split:
-            parent = obj["parents"][0]
-            block_attrs = objects[parent][0].get("attributes", {})
-            inherited = {k: v for k, v in block_attrs.items() if k not in BLOCK_KEYS}
-            b = _building(oid, obj, base, objects, local, frame, inherited)
-            if b is not None:
-                b.parent = parent
-        else:
-            continue
+        try:
+            b = _city_object(oid, obj, base, objects, local, frame, split)
+        except (IndexError, KeyError, TypeError, ValueError, AttributeError) as exc:
+            # a vertex index beyond the vertex list, a ring that is no list of indices...
+            raise InputError(f"{path}: CityObject {oid!r} has malformed geometry ({type(exc).__name__}: {exc})") from None
         if b is not None:
             buildings.append(b)
     if not buildings:
@@ -556,6 +551,24 @@ def read_cityjson(
     if "referenceDate" in head.get("metadata", {}):
         meta["referenceDate"] = head["metadata"]["referenceDate"]
     return CityModel(buildings, crs or file_crs, frame, meta)
+
+
+def _city_object(oid, obj, base, objects, local, frame, split) -> Building | None:
+    """The :class:`Building` one CityObject is read as (None: not read as one)."""
+    if not isinstance(obj, dict):
+        raise TypeError("the CityObject is not a JSON object")
+    kind = obj.get("type")
+    if kind == "Building" and oid not in split:
+        return _building(oid, obj, base, objects, local, frame)
+    if kind == "BuildingPart" and obj.get("parents") and obj["parents"][0] in split:
+        parent = obj["parents"][0]
+        block_attrs = objects[parent][0].get("attributes", {})
+        inherited = {k: v for k, v in block_attrs.items() if k not in BLOCK_KEYS}
+        b = _building(oid, obj, base, objects, local, frame, inherited)
+        if b is not None:
+            b.parent = parent
+        return b
+    return None
 
 
 def _read_documents(path: Path) -> list[dict]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,13 +161,21 @@ def _read_layer(path: Path, crs: pyproj.CRS) -> tuple[dict, np.ndarray, list]:
     GeoJSON without a crs member implies) but projected numbers inside.
     """
     try:
-        meta, _, wkb, fields = pyogrio.raw.read(path)
+        with warnings.catch_warnings():  # GDAL's notes (unclosed rings...) surface as the errors below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            meta, _, wkb, fields = pyogrio.raw.read(path)
     except Exception as exc:
         raise InputError(f"{path}: cannot read vector file ({exc})") from None
     if meta.get("crs") is None:
         raise CRSError(f"{path}: the file has no CRS (add a .prj or a crs member)")
     src = pyproj.CRS.from_user_input(meta["crs"])
-    geoms = shapely.from_wkb(wkb)
+    geoms = shapely.from_wkb(wkb, on_invalid="ignore")  # None where the geometry cannot be built
+    broken = [i for i, (g, raw) in enumerate(zip(geoms, wkb, strict=True)) if g is None and raw is not None]
+    if broken:
+        raise InputError(
+            f"{path}: feature {broken[0]} (of {len(broken)} broken) has a geometry that cannot be built, "
+            "e.g. a ring of fewer than 4 points or not closed; repair it (QGIS: Fix geometries)"
+        )
     if src.is_geographic:
         b = shapely.bounds(geoms)
         if np.nanmax(np.abs(b[:, [0, 2]])) > 180 or np.nanmax(np.abs(b[:, [1, 3]])) > 90:

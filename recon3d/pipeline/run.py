@@ -359,9 +359,47 @@ def _satellite_cloud(s: RunState) -> tuple[PointCloud, dict]:
     return cloud, report
 
 
+#: Fewest points a run works with: fewer make no DSM worth the name, let alone buildings.
+MIN_POINTS = 100
+
+#: Metres from the cloud's median height beyond which a point is a gross error
+#: (no terrain or building spans 10 km vertically): dropped, with a warning.
+GROSS_HEIGHT_ERROR = 1e4
+
+#: Largest magnitude of heights (m): beyond it float32 rasters no longer hold
+#: centimetres (their step at 131 km is 1.6 cm), and a wrong vertical offset or unit is
+#: far more likely than real data.
+MAX_ABS_HEIGHT = 1e5
+
+
+def _check_cloud(s: RunState) -> None:
+    """Physical sanity of the cloud: enough points, an area, plausible heights."""
+    n = len(s.cloud)
+    if n < MIN_POINTS:
+        raise InputError(f"{s.input_path}: {n} points: too few for a DSM and buildings (at least {MIN_POINTS})")
+    z = s.cloud.xyz[:, 2]
+    median = float(np.median(z))
+    gross = np.abs(z - median) > s.units.height(GROSS_HEIGHT_ERROR)
+    if gross.any():
+        s.warn(f"{int(gross.sum())} points lie more than {GROSS_HEIGHT_ERROR:g} m from the median height "
+               f"{median:.1f}: gross errors, left out")
+        s.cloud = s.cloud[~gross]
+    if abs(median) * s.units.vertical > MAX_ABS_HEIGHT:
+        raise InputError(
+            f"{s.input_path}: heights around {median:.6g} {s.units.name}: rasters cannot hold them to the "
+            "centimetre; is the vertical offset or unit wrong?"
+        )
+    extent = np.ptp(s.cloud.xyz[:, :2], axis=0)
+    if extent.min() < s.units.length(2.0):
+        raise InputError(
+            f"{s.input_path}: the points span {extent[0]:.3g} x {extent[1]:.3g} {s.units.name}: no area to grid"
+        )
+
+
 def _read_side_inputs(s: RunState) -> None:
     """Footprints, check points and terrain constraints, once the cloud and its CRS exist."""
     s.units = crs_units(s.cloud.crs, source=str(s.input_path))
+    _check_cloud(s)
     if s.cloud.has_classes():
         s.reference_classes = s.cloud.classification.copy()
     if not s.vectors_read:  # frame stereo read them before matching

@@ -1,0 +1,89 @@
+"""The bad-input catalogue: each case one line on stderr naming the file and the problem, exit 1,
+no traceback and nothing written (the command line in a subprocess, as a user runs it)."""
+
+import json
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pytest
+
+
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "recon3d", "-q", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def _refused(result, *needles):
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("recon3d: error: "), result.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+def _las(path, xyz, z_scale=0.01):
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.scales, header.offsets = [0.01, 0.01, z_scale], xyz.min(axis=0)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.write(path)
+    return path
+
+
+def _field(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.column_stack([rng.uniform(0, 100, n), rng.uniform(0, 100, n), rng.uniform(0, 1, n)]) + [5e5, 5e6, 50]
+
+
+@pytest.mark.parametrize("name, xyz, needles", [
+    # 1,000 points at one XYZ: a gradient error deep in the ground filter
+    ("same.las", np.tile([[5e5, 5e6, 50.0]], (1000, 1)), ["same.las", "span 0 x 0 metre", "no area"]),
+    # 10 random points became one 1,600 m2 building without a word
+    ("ten.las", _field(10), ["ten.las", "10 points: too few"]),
+    # a whole cloud offset to 1e9 m: float32 rasters collapsed to one value, 0 buildings
+    ("high.las", _field(2000) + [0, 0, 1e9], ["high.las", "heights around 1e+09", "vertical offset"]),
+])
+def test_clouds_that_cannot_be_gridded(tmp_path, name, xyz, needles):
+    path = _las(tmp_path / name, xyz)
+    result = _cli("run", path, "--crs", "EPSG:32631", "-o", tmp_path / "out", cwd=tmp_path)
+    _refused(result, *needles)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_a_gross_height_error_is_dropped_with_a_warning(tmp_path):
+    """One point at Z = 1e9 crashed the LAS writer (OverflowError) after the whole run."""
+    xyz = _field(3000)
+    xyz[0, 2] = 1e9
+    path = _las(tmp_path / "spike.las", xyz, z_scale=1.0)
+    result = _cli("run", path, "--crs", "EPSG:32631", "-o", tmp_path / "out", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert any("1 points lie more than" in w for w in run["warnings"])
+    assert laspy.read(tmp_path / "out" / "cloud.laz").header.point_count == 2999
+
+
+@pytest.mark.parametrize("content, needle", [
+    ([1, 2], "not CityJSON (the top level is not a JSON object)"),
+    ({"type": "CityJSON", "version": "2.0", "transform": {"scale": [1, 1, 1], "translate": [0, 0, 0]},
+      "CityObjects": {"a": {"type": "Building", "geometry": [{"type": "Solid", "lod": "1",
+                                                            "boundaries": [[[[0, 1, 99]]]]}]}},
+      "vertices": [[0, 0, 0], [1, 0, 0]]}, "CityObject 'a' has malformed geometry"),
+    ("hello", "not valid JSON"),
+])
+def test_validate_malformed_cityjson(tmp_path, content, needle):
+    path = tmp_path / "city.city.json"
+    path.write_text(content if isinstance(content, str) else json.dumps(content))
+    _refused(_cli("validate", path, cwd=tmp_path), "city.city.json", needle)
+
+
+def test_footprints_with_an_unclosed_ring(tmp_path):
+    cloud = _las(tmp_path / "field.las", _field(3000))
+    ring = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [[[5e5, 5e6], [5e5 + 9, 5e6 + 9]]]}}]}
+    (tmp_path / "ring.geojson").write_text(json.dumps(ring))
+    result = _cli("run", cloud, "--crs", "EPSG:32631", "--footprints", tmp_path / "ring.geojson",
+                  "-o", tmp_path / "out", cwd=tmp_path)
+    _refused(result, "ring.geojson", "feature 0", "cannot be built")
+    assert not (tmp_path / "out").exists()
