@@ -574,7 +574,10 @@ def _city_object(oid, obj, base, objects, local, frame, split) -> Building | Non
 def _read_documents(path: Path) -> list[dict]:
     from recon3d.errors import InputError
 
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text file ({exc.reason} at byte {exc.start}); CityJSON is UTF-8 JSON") from None
     try:
         if path.suffix == ".jsonl":
             return [json.loads(line) for line in text.splitlines() if line.strip()]
