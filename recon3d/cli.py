@@ -258,29 +258,33 @@ def change(out_dir, old_buildings, overwrite):
 @click.argument("path", metavar="FILE", type=click.Path(path_type=Path))
 @click.option("--planarity", default=0.01, show_default=True, help="Largest distance (CRS units) of a vertex to its face's plane.")
 def validate(path, planarity):
-    """Check every solid of a CityJSON file the way val3dity does (closed, 2-manifold,
-    outward, planar faces, no degenerate face, positive volume); exit 1 if any fails.
+    """Check every solid of every city object of a CityJSON file (BuildingParts and
+    MultiSolids included) the way val3dity does (closed, 2-manifold, outward, planar
+    faces, no degenerate face, positive volume); exit 1 if any fails or there is none.
+    Geometries that are not solids (MultiSurface) are counted, not checked.
 
     \b
     Examples
     --------
       recon3d validate out/buildings.city.json
     """
-    from recon3d.io.cityjson import read_cityjson
+    from recon3d.io.cityjson import solid_inventory
     from recon3d.quality.meshcheck import check_solid
 
-    city = read_cityjson(path)
-    n_solids = n_bad = 0
-    for b in city:
-        for lod, solid in sorted(b.solids.items()):
-            n_solids += 1
-            issues = check_solid(solid, planarity_tol=planarity)
-            if issues:
-                n_bad += 1
-                text = "; ".join(f"{i.code} {i.name}" + (f" (surface {i.surface})" if i.surface is not None else "") for i in issues[:5])
-                click.echo(f"{b.id} LoD {lod}: {text}")
-    click.echo(f"{n_solids - n_bad} of {n_solids} solids valid in {len(city)} buildings")
-    if n_bad:
+    solids, others = solid_inventory(path)
+    n_bad = 0
+    for oid, kind, label, solid in solids:
+        issues = check_solid(solid, planarity_tol=planarity)
+        if issues:
+            n_bad += 1
+            text = "; ".join(f"{i.code} {i.name}" + (f" (surface {i.surface})" if i.surface is not None else "") for i in issues[:5])
+            click.echo(f"{oid} ({kind}) {label}: {text}")
+    objects = len({oid for oid, *_ in solids})
+    click.echo(f"{len(solids) - n_bad} of {len(solids)} solids valid in {objects} city objects")
+    if others:
+        listed = ", ".join(f"{n} {k}" for k, n in sorted(others.items()))
+        click.echo(f"not solids, so not checked: {listed} geometries")
+    if n_bad or not solids:
         sys.exit(1)
 
 

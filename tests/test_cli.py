@@ -149,6 +149,13 @@ def test_validate_command(delft_run):
     # the Den Haag sample has one face 1+ cm off its plane: found, exit 1
     bad = CliRunner().invoke(cli, ["validate", str(shared("citymodels/DH_01_subs.city.json"))])
     assert bad.exit_code == 1 and "203 NON_PLANAR_POLYGON_DISTANCE_PLANE" in bad.output
+    # every solid of every object: its 9 BuildingPart solids, not the 4 one per Building gave
+    assert "8 of 9 solids valid in 9 city objects" in bad.output and "(BuildingPart)" in bad.output
+    # MultiSurface buildings have no solid: counted, not passed as "0 of 0 solids valid", exit 1
+    surfaces = CliRunner().invoke(cli, ["validate", str(shared("citymodels/rotterdam_subset.json"))])
+    assert surfaces.exit_code == 1 and "16 MultiSurface geometries" in surfaces.output
+    lods = CliRunner().invoke(cli, ["validate", str(shared("citymodels/multi_lod.json"))])
+    assert lods.exit_code == 0 and "30 of 30 solids valid" in lods.output
 
 
 def test_change_detection_outputs(tmp_path):

@@ -553,6 +553,69 @@ def read_cityjson(
     return CityModel(buildings, crs or file_crs, frame, meta)
 
 
+def solid_inventory(path: str | Path) -> tuple[list[tuple[str, str, str, Solid]], dict[str, int]]:
+    """Every solid of every CityObject of a CityJSON file, whatever its type, for validation.
+
+    Unlike :func:`read_cityjson`, which builds one model per Building, this reads each
+    geometry as the file holds it: the exterior shell of every ``Solid``, and of every
+    solid of a ``MultiSolid`` or ``CompositeSolid``, of every CityObject (Building,
+    BuildingPart, BuildingInstallation, ...).
+
+    Returns
+    -------
+    solids : list of (object id, object type, label, Solid)
+        ``label`` is ``"LoD <lod>"``, with ``" solid <k>"`` for the k-th solid of a
+        MultiSolid / CompositeSolid.
+    others : dict
+        Geometries that are not solids (MultiSurface, CompositeSurface, ...), counted by type.
+
+    Raises
+    ------
+    InputError
+        Not CityJSON, or a geometry indexing vertices that do not exist.
+    """
+    from recon3d.errors import InputError
+    from recon3d.io import require_file
+
+    path = require_file(path, "CityJSON")
+    docs = _read_documents(path)
+    if not docs or not all(isinstance(d, dict) for d in docs):
+        raise InputError(f"{path}: not CityJSON (the top level is not a JSON object)")
+    if docs[0].get("type") != "CityJSON":
+        raise InputError(f"{path}: not CityJSON (type {docs[0].get('type')!r})")
+    head = docs[0]
+    scale = np.asarray(head.get("transform", {}).get("scale", [1, 1, 1]), dtype=np.float64)
+    translate = np.asarray(head.get("transform", {}).get("translate", [0, 0, 0]), dtype=np.float64)
+    solids, others, blocks, offset = [], {}, [], 0
+    items = []
+    for doc in docs:
+        block = np.asarray(doc.get("vertices", []), dtype=np.float64).reshape(-1, 3)
+        items += [(oid, obj, offset) for oid, obj in doc.get("CityObjects", {}).items()]
+        blocks.append(block)
+        offset += len(block)
+    world = np.concatenate(blocks) * scale + translate if offset else np.zeros((0, 3))
+    local = world - (world.min(axis=0) if len(world) else 0.0)
+    for oid, obj, base in items:
+        for geom in obj.get("geometry", []) if isinstance(obj, dict) else []:
+            kind, lod = geom.get("type"), str(geom.get("lod"))
+            b = geom.get("boundaries", [])
+            if kind == "Solid":
+                shells = [("", b[0])] if b else []
+            elif kind in ("MultiSolid", "CompositeSolid"):
+                shells = [(f" solid {k}", solid[0]) for k, solid in enumerate(b) if solid]
+            else:
+                others[kind] = others.get(kind, 0) + 1
+                continue
+            for suffix, shell in shells:
+                try:
+                    surfaces = [[np.asarray(r, dtype=np.int64) + base for r in surface] for surface in shell]
+                    kinds = [_kind_by_normal(local, rings) for rings in surfaces]
+                    solids.append((oid, obj.get("type", "?"), f"LoD {lod}{suffix}", _solid(local, surfaces, kinds)))
+                except (IndexError, TypeError, ValueError) as exc:
+                    raise InputError(f"{path}: CityObject {oid!r} has malformed geometry ({type(exc).__name__}: {exc})") from None
+    return solids, others
+
+
 def _city_object(oid, obj, base, objects, local, frame, split) -> Building | None:
     """The :class:`Building` one CityObject is read as (None: not read as one)."""
     if not isinstance(obj, dict):
