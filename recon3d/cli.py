@@ -210,11 +210,22 @@ def export(out_dir, fmt, dest, overwrite):
     suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb"}[fmt]
     dest = dest or out_dir / f"buildings{suffix}"
     _refuse_existing([dest, dest.with_suffix(".mtl")] if fmt == "obj" else [dest], overwrite)  # OBJ writes its .mtl
-    city = cityjson.read_cityjson(out_dir / "buildings.city.json")
+    from recon3d.errors import InputError
+
+    source = out_dir / "buildings.city.json"
+    city = cityjson.read_cityjson(source, parts=True)  # every BuildingPart's solid, not the first one
+    _, others = cityjson.solid_inventory(source)
+    solids = sum(len(b.solids) for b in city)
+    skipped = ", ".join(f"{n} {k}" for k, n in sorted(others.items()))
+    if solids == 0:
+        raise InputError(f"{source}: no solid to export ({len(city)} buildings"
+                         + (f"; {skipped} geometries, which export does not convert)" if skipped else ")"))
     writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
                "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
     writers[fmt](city, dest)
-    click.echo(f"wrote {dest} ({len(city)} buildings)")
+    click.echo(f"wrote {dest} ({len(city)} buildings, {solids} solids)")
+    if skipped:
+        click.echo(f"skipped: {skipped} geometries (not solids; export converts solids only)")
 
 
 @cli.command()

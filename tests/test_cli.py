@@ -180,3 +180,22 @@ def test_change_detection_outputs(tmp_path):
     assert again.exit_code == 1 and "--overwrite" in again.output
     again = CliRunner().invoke(cli, ["change", str(out), "--old-buildings", str(shared(BDUNI)), "--overwrite"])
     assert again.exit_code == 0 and "not_observed 34" in again.output
+
+
+def test_export_keeps_every_solid_or_says_why(tmp_path):
+    """Den Haag's 9 BuildingPart solids became 4; Rotterdam's MultiSurface buildings were written empty."""
+    import shutil
+
+    for name in ("DH_01_subs.city.json", "rotterdam_subset.json"):
+        folder = tmp_path / name.split(".")[0]
+        folder.mkdir()
+        shutil.copy(shared(f"citymodels/{name}"), folder / "buildings.city.json")
+    dh = CliRunner().invoke(cli, ["export", str(tmp_path / "DH_01_subs"), "--format", "cityjson",
+                                  "-o", str(tmp_path / "dh.city.json")])
+    assert dh.exit_code == 0 and "9 solids" in dh.output
+    check = CliRunner().invoke(cli, ["validate", str(tmp_path / "dh.city.json")])
+    assert "of 9 solids valid" in check.output
+    rotterdam = CliRunner().invoke(cli, ["export", str(tmp_path / "rotterdam_subset"), "--format", "obj",
+                                         "-o", str(tmp_path / "r.obj")])
+    assert rotterdam.exit_code == 1 and "16 MultiSurface geometries" in rotterdam.output
+    assert not (tmp_path / "r.obj").exists()
