@@ -87,3 +87,20 @@ def test_footprints_with_an_unclosed_ring(tmp_path):
                   "-o", tmp_path / "out", cwd=tmp_path)
     _refused(result, "ring.geojson", "feature 0", "cannot be built")
     assert not (tmp_path / "out").exists()
+
+
+def test_data_in_the_wrong_crs(tmp_path):
+    """Delft's RD coordinates declared as French Lambert 93 were accepted, and landed in the ocean."""
+    from conftest import DELFT, shared
+
+    result = _cli("run", shared(DELFT), "--crs", "EPSG:2154", "-o", tmp_path / "out", cwd=tmp_path)
+    _refused(result, "delft_ahn3_strip.laz", "EPSG:2154", "outside that CRS's area of use", "is the CRS right?")
+    cloud = _las(tmp_path / "field.las", _field(3000))  # UTM 31N coordinates
+    tile = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::28992"}},
+            "features": [{"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": [
+                [[5e5, 5e6], [5e5 + 9, 5e6], [5e5 + 9, 5e6 + 9], [5e5, 5e6]]]}}]}
+    (tmp_path / "rd.geojson").write_text(json.dumps(tile))
+    result = _cli("run", cloud, "--crs", "EPSG:32631", "--footprints", tmp_path / "rd.geojson",
+                  "-o", tmp_path / "out", cwd=tmp_path)
+    _refused(result, "rd.geojson", "EPSG:28992", "area of use")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["field.las", "rd.geojson"]

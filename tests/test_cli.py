@@ -66,7 +66,7 @@ def test_footprints_that_miss_the_data(tmp_path):
     from recon3d.io.vectors import write_features
 
     far = tmp_path / "far.geojson"
-    write_features(far, [shapely.box(0, 0, 10, 10)], [{"id": "x"}], pyproj.CRS.from_epsg(2154))
+    write_features(far, [shapely.box(650000, 6860000, 650010, 6860010)], [{"id": "x"}], pyproj.CRS.from_epsg(2154))  # Paris
     out = tmp_path / "out"
     _assert_clean_failure(_run([shared(IGN), "-o", out, "--footprints", far]), out, "far.geojson", "overlaps")
 

@@ -4,6 +4,7 @@ import numpy as np
 import pyproj
 import pytest
 import shapely
+import shapely.affinity
 from affine import Affine
 
 from conftest import AUTZEN, BDUNI, DELFT, IGN, shared
@@ -114,6 +115,8 @@ def test_invalid_and_multi_polygons_are_repaired(tmp_path):
     bowtie = shapely.Polygon([(0, 0), (10, 10), (10, 0), (0, 10)])
     multi = shapely.MultiPolygon([shapely.box(20, 0, 30, 10), shapely.box(40, 0, 50, 10)])
     line_like = shapely.Polygon([(0, 0), (1, 0), (2, 0)])
+    # in France, where Lambert 93 is used (the CRS's area of use is checked)
+    bowtie, multi, line_like = (shapely.affinity.translate(g, 870000, 6617000) for g in (bowtie, multi, line_like))
     f = tmp_path / "bad.geojson"
     write_features(f, [bowtie, multi, line_like], [{"id": "a"}, {"id": "b"}, {"id": "c"}], pyproj.CRS.from_epsg(2154))
     fps, notes = read_footprints(f, crs=parse_crs("EPSG:2154"))

@@ -53,6 +53,51 @@ def crs_name(crs: pyproj.CRS | None) -> str:
     return f"{auth[0]}:{auth[1]}" if auth else crs.name
 
 
+#: Degrees the data may reach beyond its CRS's published area of use.
+AREA_OF_USE_MARGIN = 2.0
+
+
+def check_area_of_use(crs: pyproj.CRS, lo, hi, *, source: str) -> None:
+    """Refuse data whose extent lies wholly outside its CRS's area of use.
+
+    A file labelled with the wrong CRS (Dutch RD coordinates declared as French Lambert
+    93) otherwise reads, reprojects and lands hundreds of kilometres away.
+
+    Parameters
+    ----------
+    crs : pyproj.CRS
+    lo, hi : sequence of float
+        Lowest and highest corner (x, y) of the data in ``crs``.
+    source : str
+        The file, for the message.
+
+    Raises
+    ------
+    CRSError
+        When none of the extent's corners and centre falls in the area of use widened
+        by :data:`AREA_OF_USE_MARGIN` degrees.
+    """
+    from recon3d.errors import CRSError
+
+    area = crs.area_of_use
+    if area is None:
+        return
+    xs = np.array([lo[0], hi[0], lo[0], hi[0], 0.5 * (lo[0] + hi[0])], float)
+    ys = np.array([lo[1], lo[1], hi[1], hi[1], 0.5 * (lo[1] + hi[1])], float)
+    try:
+        lon, lat = pyproj.Transformer.from_crs(crs, 4326, always_xy=True).transform(xs, ys)
+    except pyproj.exceptions.ProjError:
+        lon = lat = np.full(5, np.nan)
+    m = AREA_OF_USE_MARGIN
+    inside = (lon >= area.west - m) & (lon <= area.east + m) & (lat >= area.south - m) & (lat <= area.north + m)
+    if not np.any(inside):
+        where = "no position on Earth" if not np.isfinite(lon).any() else f"lon {np.nanmean(lon):.2f}, lat {np.nanmean(lat):.2f}"
+        raise CRSError(
+            f"{source}: its coordinates, read in {crs_name(crs)}, lie at {where}, outside that CRS's area of use "
+            f"({area.name}); is the CRS right?"
+        )
+
+
 def to_rasterio_crs(crs: pyproj.CRS | None):
     """The same CRS as a :class:`rasterio.crs.CRS` (for GeoTIFF writing)."""
     if crs is None:

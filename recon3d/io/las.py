@@ -9,7 +9,7 @@ import laspy
 import numpy as np
 import pyproj
 
-from recon3d.core.geo import crs_name
+from recon3d.core.geo import check_area_of_use, crs_name
 from recon3d.core.pointcloud import PointCloud
 from recon3d.errors import CRSError, InputError
 from recon3d.io import atomic_path, require_file
@@ -71,7 +71,10 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     names = set(las.point_format.dimension_names)
     attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
     file_crs = _header_crs(las, path)
-    return PointCloud(xyz, attributes, _resolve_crs(file_crs, crs, path))
+    resolved = _resolve_crs(file_crs, crs, path)
+    if resolved is not None:
+        check_area_of_use(resolved, xyz.min(axis=0), xyz.max(axis=0), source=str(path))
+    return PointCloud(xyz, attributes, resolved)
 
 
 def las_date(path: str | Path) -> str | None:

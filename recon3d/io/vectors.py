@@ -13,7 +13,7 @@ import pyogrio
 import pyproj
 import shapely
 
-from recon3d.core.geo import crs_name
+from recon3d.core.geo import check_area_of_use, crs_name
 from recon3d.errors import CRSError, InputError
 from recon3d.io import atomic_path, require_file
 
@@ -183,6 +183,9 @@ def _read_layer(path: Path, crs: pyproj.CRS) -> tuple[dict, np.ndarray, list]:
                 f"{path}: the file's CRS is {crs_name(src)} (longitude/latitude; GeoJSON without "
                 "a crs member means WGS84) but its coordinates are projected; write the CRS into the file"
             )
+    bounds = shapely.bounds(geoms)
+    if len(bounds) and np.isfinite(bounds).any():
+        check_area_of_use(src, np.nanmin(bounds[:, :2], axis=0), np.nanmax(bounds[:, 2:], axis=0), source=str(path))
     if not _same_horizontal(src, crs):
         log.info("reprojecting %s from %s to %s", path.name, crs_name(src), crs_name(crs))
         t = pyproj.Transformer.from_crs(_horizontal(src), _horizontal(crs), always_xy=True)
