@@ -104,3 +104,19 @@ def test_data_in_the_wrong_crs(tmp_path):
                   "-o", tmp_path / "out", cwd=tmp_path)
     _refused(result, "rd.geojson", "EPSG:28992", "area of use")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["field.las", "rd.geojson"]
+
+
+@pytest.mark.parametrize("offset, value, needle", [
+    (103, 1, "variable-length records"),  # 16 million VLRs: laspy spent minutes and gigabytes on them
+    (250, 0x7F, "the header claims"),  # a point count of billions: the reader allocated 17 GB
+])
+def test_las_headers_that_claim_too_much(tmp_path, offset, value, needle):
+    from recon3d.errors import InputError
+    from recon3d.io.las import read_las
+
+    path = _las(tmp_path / "a.las", _field(200))
+    data = bytearray(path.read_bytes())
+    data[offset] = value
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=needle):  # from the header, before anything is allocated
+        read_las(path)

@@ -59,6 +59,7 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
         No CRS in the file and none given, or a conflicting one given.
     """
     path = require_file(path, "point cloud")
+    _check_point_count(path)
     try:
         las = laspy.read(path)
         xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
@@ -75,6 +76,53 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     if resolved is not None:
         check_area_of_use(resolved, xyz.min(axis=0), xyz.max(axis=0), source=str(path))
     return PointCloud(xyz, attributes, resolved)
+
+
+#: Largest compression ratio believed of a LAZ file: a header claiming more points than
+#: this many times the file could hold is damaged (reading it would allocate them all).
+MAX_LAZ_RATIO = 30
+
+
+def _check_record_counts(path: Path) -> None:
+    """Refuse a header whose VLR or EVLR count the file cannot hold (laspy would try to read
+    millions of them), from the raw header fields of the LAS specification."""
+    import struct
+
+    with open(path, "rb") as f:
+        head = f.read(247)
+    if len(head) < 104 or head[:4] != b"LASF":
+        return  # not LAS at all: laspy says so
+    header_size, start, n_vlr = struct.unpack_from("<HII", head, 94)
+    if n_vlr * 54 > max(start - header_size, 0):  # a VLR header alone is 54 bytes
+        raise InputError(f"{path}: the header claims {n_vlr} variable-length records in {start - header_size} bytes: damaged")
+    if head[24:26] == b"\x01\x04" and len(head) >= 247:  # LAS 1.4: extended VLRs at the end
+        evlr_start, n_evlr = struct.unpack_from("<QI", head, 235)
+        if n_evlr and n_evlr * 60 > max(path.stat().st_size - evlr_start, 0):
+            raise InputError(f"{path}: the header claims {n_evlr} extended records beyond the file's end: damaged")
+
+
+def _check_point_count(path: Path) -> None:
+    """Refuse a header whose point count the file cannot hold, or memory cannot, before reading."""
+    from recon3d.pipeline.run import available_memory
+
+    _check_record_counts(path)
+    try:
+        with laspy.open(path) as reader:
+            header = reader.header
+            count, size = int(header.point_count), int(header.point_format.size)
+            start, compressed = int(header.offset_to_point_data), bool(header.are_points_compressed)
+    except Exception as exc:  # a header laspy cannot parse: read_las reports it below
+        raise InputError(f"{path}: cannot read LAS/LAZ header ({_short(exc)})") from None
+    data = max(path.stat().st_size - start, 0)
+    room = data * (MAX_LAZ_RATIO if compressed else 1) // max(size, 1)
+    if count > room:
+        raise InputError(f"{path}: the header claims {count} points but the file holds at most {room}: truncated or damaged")
+    need = count * (size + 64)  # the records, float64 coordinates and the kept attributes
+    if need > available_memory():
+        raise InputError(
+            f"{path}: {count} points need about {need / 2**30:.1f} GiB to read, more than the memory available; "
+            "cut the cloud into tiles"
+        )
 
 
 def las_date(path: str | Path) -> str | None:
