@@ -146,7 +146,7 @@ def run(
         3-D lines (roads, water edges) and spot heights (vector file, or CSV x,y,z for
         altimetry) the DTM must honour; frame stereo also matches within them.
     dem : path-like, optional
-        A coarse elevation model (GeoTIFF) that bounds the heights frame stereo searches.
+        An elevation model (GeoTIFF) that bounds the heights frame stereo or a satellite pair searches.
     truth_dsm : path-like, optional
         A reference DSM (GeoTIFF) the DSM is compared with cell by cell.
     gcps : path-like, optional
