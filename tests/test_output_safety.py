@@ -150,8 +150,10 @@ def test_work_folders_of_killed_runs_are_removed(tmp_path):
 def test_a_signal_ends_the_run_at_once_and_leaves_nothing(tmp_path, sig, code):
     """SIGTERM or Ctrl-C during the building stage with 2 workers: out at once, exit 143 / 130."""
     out = tmp_path / "out"
+    # as from a terminal: the test runner's workers may ignore SIGINT, and children inherit that
     proc = subprocess.Popen([sys.executable, "-m", "recon3d", "run", str(shared(DELFT)), "--crs", "EPSG:7415",
-                             "-o", str(out), "--workers", "2"], stderr=subprocess.PIPE, text=True)
+                             "-o", str(out), "--workers", "2"], stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(4.0)  # reading, DSM and ground take about 3 s; buildings about 4 s more
     assert proc.poll() is None, "the run ended before the signal"
     os.kill(proc.pid, sig)
