@@ -425,11 +425,10 @@ def rectify_rpc_pair(
     d = q1[:, 0] - q2[:, 0]
     affine_residual = float(np.abs(q1[:, 1] - q2[:, 1]).max())  # the affine cameras' own error
     d_mid = float(np.median(d[mid]))
-    pad = 4
-    if heights is not None:  # the disparities of the searched heights, over the whole crop
-        e1, e2, _ = _correspondences(a, b, np.array([h0, h1]))
-        d, pad = _apply(A1, e1)[:, 0] - _apply(A2, e2 + shift)[:, 0], 2
-    lo, hi = np.floor(d.min()) - pad, np.ceil(d.max()) + pad
+    if heights is None:
+        lo, hi = np.floor(d.min()) - 4, np.ceil(d.max()) + 4
+    else:
+        lo, hi = _search_range(a, b, A1, A2, shift, (h0, h1))
     samples, rejected = _parallax_samples(left, right, A1, a, core)
     parallax = _parallax_summary(samples, rejected)
     log.info(
@@ -440,6 +439,13 @@ def rectify_rpc_pair(
         left, right, A1, A2, (h0, h1), (int(lo), int(hi)), parallax, shift,
         n_ties, bias_from, samples, d_mid, affine_residual,
     )
+
+
+def _search_range(a: RPCCamera, b: RPCCamera, A1, A2, shift, heights) -> tuple[int, int]:
+    """Disparities (whole px, +-2) of a grid over ``a`` at the two ``heights``, in the maps' frame."""
+    e1, e2, _ = _correspondences(a, b, np.asarray(heights, float))
+    d = _apply(A1, e1)[:, 0] - _apply(A2, e2 + shift)[:, 0]
+    return int(np.floor(d.min()) - 2), int(np.ceil(d.max()) + 2)
 
 
 def _affine_maps(p1: np.ndarray, p2: np.ndarray, mid: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -874,9 +880,10 @@ def dense_cloud_rpc(
         if progress is not None:
             progress(f"tile {k + 1}/{len(cores)}")
         try:
-            search, why = _tile_search(a, b, box, ties, whole_shift, margin, len(cores) == 1, dem, dem_tolerance)
+            frame = _tile_frame(a, b, box, k, len(cores) == 1, whole_shift, margin)
+            search, why = _tile_search(box, frame[2], ties, len(cores) == 1, a, dem, dem_tolerance)
             piece, pair, (n_matched, n_core) = _tile_points(
-                a, b, image_a, image_b, core, box, k, len(cores), (t1, t2), whole_shift, margin,
+                a, b, image_a, image_b, core, box, frame, (t1, t2), whole_shift,
                 search=search, engine=engine, floor=floor, model=model, limit=limit, checked=ties,
             )
         except InputError as exc:
@@ -975,16 +982,27 @@ def _disparity_union(records: list[dict]) -> list[int]:
     return [int(np.floor(lo)), int(np.ceil(hi))]
 
 
-def _tile_search(a, b, box, ties: TiePoints, whole_shift, margin: int, whole: bool, dem, dem_tolerance: float):
+def _tile_frame(a, b, box, k: int, whole: bool, whole_shift, margin: int):
+    """The camera of one tile, that of the part of b's image that sees it, and that part's box.
+
+    Returns
+    -------
+    sa, sb : RPCCamera
+    bbox : (4,) int
+        (col0, row0, col1, row1) of ``sb`` in b's crop.
+    """
+    if whole:
+        return a, b, np.array([0, 0, b.width, b.height])
+    sa = _sub_camera(a, box, f"{a.name}[tile {k}]")
+    shift = np.zeros(2) if whole_shift is None else whole_shift
+    bbox = _footprint_box(sa, b, (0, 0, sa.width, sa.height), shift, margin)
+    return sa, _sub_camera(b, bbox, f"{b.name}[tile {k}]"), bbox
+
+
+def _tile_search(box, bbox, ties: TiePoints, whole: bool, a, dem, dem_tolerance: float):
     """The heights one tile searches, and why: its tie points', else the whole pair's,
     narrowed to the DEM's range under the tile (+- ``dem_tolerance``) when there is one."""
-    if whole:
-        sel = np.ones(len(ties.height), bool)
-    else:
-        shift = np.zeros(2) if whole_shift is None else whole_shift
-        sub = _sub_camera(a, box, "tile")
-        bbox = _footprint_box(sub, b, (0, 0, sub.width, sub.height), shift, margin)
-        sel = ties.inside(box, bbox)
+    sel = np.ones(len(ties.height), bool) if whole else ties.inside(box, bbox)
     search, why = None, None
     if sel.sum() >= MIN_TIE_POINTS:
         search, why = search_heights(ties.height[sel]), f"{int(sel.sum())} tie points in the tile"
@@ -1017,7 +1035,7 @@ def _dem_range(a: RPCCamera, box, dem) -> tuple[float, float]:
     return float(np.nanmin(z)), float(np.nanmax(z))
 
 
-def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shift, margin, *,
+def _tile_points(a, b, image_a, image_b, core, box, frame, ties, whole_shift, *,
                  search, engine: str = "census", floor: float = -np.inf, model: BiasModel | None = None,
                  limit: tuple[float, float] | None = None, checked: TiePoints | None = None):
     """Rectify, match and intersect one tile; the points of its core.
@@ -1026,6 +1044,8 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     ----------
     core, box : (4,) int
         The tile's core and box (col0, row0, col1, row1) in ``a``'s crop.
+    frame : (RPCCamera, RPCCamera, (4,) int)
+        :func:`_tile_frame` of the tile.
     ties : ((m, 2) float, (m, 2) float)
         The whole pair's tie points (col, row) in ``a`` and ``b``.
     whole_shift : (2,) float or None
@@ -1063,15 +1083,9 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     """
     from recon3d.stereo.match import MatchParams, match
 
-    whole = n_tiles == 1
+    sa, sb, bbox = frame
+    whole = sa is a
     c0, r0, c1, r1 = (int(v) for v in box)
-    if whole:
-        sa, sb, bbox = a, b, np.array([0, 0, b.width, b.height])
-    else:
-        sa = _sub_camera(a, box, f"{a.name}[tile {k}]")
-        shift = np.zeros(2) if whole_shift is None else whole_shift
-        bbox = _footprint_box(sa, b, (0, 0, sa.width, sa.height), shift, margin)
-        sb = _sub_camera(b, bbox, f"{b.name}[tile {k}]")
     tile_a = image_a[r0:r1, c0:c1]
     tile_b = image_b[bbox[1] : bbox[3], bbox[0] : bbox[2]]
     for name, img in ((sa.name, tile_a), (sb.name, tile_b)):
@@ -1086,9 +1100,9 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
     local_ties = (t1[sel] - [c0, r0], t2[sel] - bbox[:2])
     local_core = np.asarray(core) - [c0, r0, c0, r0]
     fallback = whole_shift if model is None or whole else model.at(0.5 * (c0 + c1), 0.5 * (r0 + r1))
+    pair = rectify_rpc_pair(sa, sb, tile_a, tile_b, ties=local_ties, core=None if whole else local_core,
+                            fallback_shift=fallback, heights=search)
     while True:
-        pair = rectify_rpc_pair(sa, sb, tile_a, tile_b, ties=local_ties, core=None if whole else local_core,
-                                fallback_shift=fallback, heights=search)
         lo, hi = pair.disparity_range
         params = MatchParams(min_disparity=lo, max_disparity=hi + 1, engine=engine,
                              intensity_weight=SATELLITE_INTENSITY_WEIGHT)
@@ -1096,9 +1110,11 @@ def _tile_points(a, b, image_a, image_b, core, box, k, n_tiles, ties, whole_shif
         wider = _widened(result.disparity, lo, hi, search, limit)
         if wider == search:
             break
-        log.info("RPC pair %s-%s, tile %d: the surface reaches the searched heights' end; %s -> %s m",
-                 a.name, b.name, k, np.round(search, 1).tolist(), np.round(wider, 1).tolist())
-        search = wider
+        log.info("RPC pair %s-%s: the surface reaches the searched heights' end; %s -> %s m",
+                 sa.name, sb.name, np.round(search, 1).tolist(), np.round(wider, 1).tolist())
+        search = wider  # the rectification stands: only the disparities to search grow
+        pair = dataclasses.replace(pair, heights=wider,
+                                   disparity_range=_search_range(sa, sb, pair.A1, pair.A2, pair.shift, wider))
     pair.tie_check = _tie_check(pair, result, checked, core, box, bbox, a)
     y, x = np.nonzero(np.isfinite(result.disparity))
     d = result.disparity[y, x]
