@@ -103,7 +103,7 @@ def _check_record_counts(path: Path) -> None:
 
 def _check_point_count(path: Path) -> None:
     """Refuse a header whose point count the file cannot hold, or memory cannot, before reading."""
-    from recon3d.pipeline.run import available_memory
+    from recon3d.pipeline.executor import available_memory
 
     _check_record_counts(path)
     try:

@@ -5,6 +5,10 @@ solids can be built in parallel. Results come back in the order of the jobs and 
 job's result depends only on the job (Open3D's RANSAC is seeded per call and held to
 one thread), so the output is the same for any number of workers.
 
+The module also tells what this process may use: its CPUs (affinity and container
+quota) and its memory (available memory and the cgroup's limit), which the pipeline
+checks before large allocations.
+
 Workers are started with the "forkserver" method: forking the pipeline's own process,
 which may hold OpenMP or TBB thread pools, can deadlock a child.
 """
@@ -19,7 +23,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cgroup_cpus", "default_workers", "map_ordered"]
+__all__ = ["available_memory", "cgroup_cpus", "default_workers", "map_ordered"]
 
 
 def default_workers() -> int:
@@ -45,6 +49,25 @@ def cgroup_cpus(root: Path = Path("/sys/fs/cgroup")) -> float | None:
         return quota / period if quota > 0 and period > 0 else None
     except (OSError, ValueError):
         return None
+
+
+def available_memory() -> float:
+    """Bytes of memory this process can still use: MemAvailable, or the cgroup's limit if lower."""
+    available = float("inf")
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                available = float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = float(Path("/sys/fs/cgroup/memory.current").read_text())
+            available = min(available, float(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return available
 
 
 def map_ordered(

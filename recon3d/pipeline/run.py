@@ -35,7 +35,7 @@ from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
 from recon3d.io.las import las_date, read_las, write_las
 from recon3d.pipeline import output
-from recon3d.pipeline.executor import default_workers, map_ordered
+from recon3d.pipeline.executor import available_memory, default_workers, map_ordered
 from recon3d.quality import evaluate
 from recon3d.quality.rasterize import render, surface_at
 from recon3d.terrain import dsm as dsm_stage
@@ -221,7 +221,7 @@ def run(
         write_report(work_dir)
         output.publish(work_dir, out_dir)
     except BaseException:
-        shutil.rmtree(work_dir, ignore_errors=True)
+        shutil.rmtree(work_dir, ignore_errors=True)  # before its parents can go
         for folder in created:  # a failed run leaves nothing, not even the folders it made
             try:
                 folder.rmdir()
@@ -515,25 +515,6 @@ def _check_grid_memory(s: RunState, extent, res: float) -> None:
             f"{need / 2**30:.1f} GiB, more than the {available / 2**30:.1f} GiB available; "
             "choose coarser cells (--set dsm.resolution=...) or cut the input into tiles"
         )
-
-
-def available_memory() -> float:
-    """Bytes of memory this process can still use: MemAvailable, or the cgroup's limit if lower."""
-    available = float("inf")
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                available = float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        if limit != "max":
-            used = float(Path("/sys/fs/cgroup/memory.current").read_text())
-            available = min(available, float(limit) - used)
-    except (OSError, ValueError):
-        pass
-    return available
 
 
 #: Least share (percent) of the area two images both see that a frame-stereo DSM must
