@@ -518,17 +518,9 @@ def read_cityjson(
     head = docs[0]
     if head.get("type") != "CityJSON" or str(head.get("version")) not in ("1.1", "2.0"):
         raise InputError(f"{path}: not CityJSON 1.1 or 2.0 (type {head.get('type')!r}, version {head.get('version')!r})")
-    scale = np.asarray(head.get("transform", {}).get("scale", [1, 1, 1]), dtype=np.float64)
-    translate = np.asarray(head.get("transform", {}).get("translate", [0, 0, 0]), dtype=np.float64)
     file_crs = _crs_from_url(head.get("metadata", {}).get("referenceSystem"))
-    objects, vertex_blocks, offset = {}, [], 0
-    for doc in docs:
-        block = np.asarray(doc.get("vertices", []), dtype=np.float64).reshape(-1, 3)
-        for oid, obj in doc.get("CityObjects", {}).items():
-            objects[oid] = (obj, offset)
-        vertex_blocks.append(block)
-        offset += len(block)
-    world = np.concatenate(vertex_blocks) * scale + translate if offset else np.zeros((0, 3))
+    world, items = _world_vertices(docs)
+    objects = {oid: (obj, base) for oid, obj, base in items}
     frame = LocalFrame.around(world.min(axis=0) if len(world) else np.zeros(3))
     local = frame.to_local(world)
     split = {
@@ -583,17 +575,8 @@ def solid_inventory(path: str | Path) -> tuple[list[tuple[str, str, str, Solid]]
         raise InputError(f"{path}: not CityJSON (the top level is not a JSON object)")
     if docs[0].get("type") != "CityJSON":
         raise InputError(f"{path}: not CityJSON (type {docs[0].get('type')!r})")
-    head = docs[0]
-    scale = np.asarray(head.get("transform", {}).get("scale", [1, 1, 1]), dtype=np.float64)
-    translate = np.asarray(head.get("transform", {}).get("translate", [0, 0, 0]), dtype=np.float64)
-    solids, others, blocks, offset = [], {}, [], 0
-    items = []
-    for doc in docs:
-        block = np.asarray(doc.get("vertices", []), dtype=np.float64).reshape(-1, 3)
-        items += [(oid, obj, offset) for oid, obj in doc.get("CityObjects", {}).items()]
-        blocks.append(block)
-        offset += len(block)
-    world = np.concatenate(blocks) * scale + translate if offset else np.zeros((0, 3))
+    solids, others = [], {}
+    world, items = _world_vertices(docs)
     local = world - (world.min(axis=0) if len(world) else 0.0)
     for oid, obj, base in items:
         for geom in obj.get("geometry", []) if isinstance(obj, dict) else []:
@@ -614,6 +597,21 @@ def solid_inventory(path: str | Path) -> tuple[list[tuple[str, str, str, Solid]]
                 except (IndexError, TypeError, ValueError) as exc:
                     raise InputError(f"{path}: CityObject {oid!r} has malformed geometry ({type(exc).__name__}: {exc})") from None
     return solids, others
+
+
+def _world_vertices(docs: list[dict]) -> tuple[np.ndarray, list[tuple[str, Any, int]]]:
+    """All vertices of a CityJSON file or sequence in world coordinates, (n, 3), and its
+    city objects as (id, object, offset of its document's vertices), in file order."""
+    head = docs[0]
+    scale = np.asarray(head.get("transform", {}).get("scale", [1, 1, 1]), dtype=np.float64)
+    translate = np.asarray(head.get("transform", {}).get("translate", [0, 0, 0]), dtype=np.float64)
+    blocks, items, offset = [], [], 0
+    for doc in docs:
+        block = np.asarray(doc.get("vertices", []), dtype=np.float64).reshape(-1, 3)
+        items += [(oid, obj, offset) for oid, obj in doc.get("CityObjects", {}).items()]
+        blocks.append(block)
+        offset += len(block)
+    return (np.concatenate(blocks) * scale + translate if offset else np.zeros((0, 3))), items
 
 
 def _city_object(oid, obj, base, objects, local, frame, split) -> Building | None:
