@@ -214,18 +214,18 @@ def export(out_dir, fmt, dest, overwrite):
 
     source = out_dir / "buildings.city.json"
     city = cityjson.read_cityjson(source, parts=True)  # every BuildingPart's solid, not the first one
-    _, others = cityjson.solid_inventory(source)
-    solids = sum(len(b.solids) for b in city)
-    skipped = ", ".join(f"{n} {k}" for k, n in sorted(others.items()))
-    if solids == 0:
-        raise InputError(f"{source}: no solid to export ({len(city)} buildings"
-                         + (f"; {skipped} geometries, which export does not convert)" if skipped else ")"))
+    kinds = [s.kind for b in city for s in b.solids.values()]
+    geometries = ", ".join(f"{kinds.count(k)} {'solids' if k == 'Solid' else k}" for k in sorted(set(kinds), reverse=True))
+    skipped = ", ".join(f"{n} {k}" for k, n in sorted(city.metadata.get("skipped_geometries", {}).items()))
+    if not kinds:
+        raise InputError(f"{source}: no geometry to export ({len(city)} buildings"
+                         + (f"; skipped: {skipped})" if skipped else ")"))
     writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
                "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
     writers[fmt](city, dest)
-    click.echo(f"wrote {dest} ({len(city)} buildings, {solids} solids)")
+    click.echo(f"wrote {dest} ({len(city)} buildings: {geometries})")
     if skipped:
-        click.echo(f"skipped: {skipped} geometries (not solids; export converts solids only)")
+        click.echo(f"skipped: {skipped}")
 
 
 @cli.command()

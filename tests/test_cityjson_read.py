@@ -16,7 +16,7 @@ from recon3d.quality.meshcheck import check_solid
     ("multi_lod.json", 10, {"1.2", "1.3", "2.2"}, 0),
     # CityJSON 1.1, BuildingParts folded into their Building; one solid has a face 1+ cm off its plane (val3dity 203)
     ("DH_01_subs.city.json", 4, {"2"}, 1),     # (read_cityjson(..., parts=True): 9, one per part)
-    ("rotterdam_subset.json", 16, set(), 0),      # MultiSurface only: footprints, no solids
+    ("rotterdam_subset.json", 16, {"2"}, 0),      # MultiSurface only: surfaces, no solid to check
 ])
 def test_reads_real_city_models(name, count, lods, invalid):
     city = read_cityjson(shared(f"citymodels/{name}"))
@@ -25,7 +25,9 @@ def test_reads_real_city_models(name, count, lods, invalid):
     for b in city:
         assert b.footprint.is_valid and b.footprint.area > 5
         assert b.roof_z > b.ground_z
-    assert sum(bool(check_solid(s)) for b in city for s in b.solids.values()) == invalid
+    solids = [s for b in city for s in b.solids.values() if s.kind == "Solid"]
+    assert sum(bool(check_solid(s)) for s in solids) == invalid
+    assert len(solids) == (0 if name.startswith("rotterdam") else sum(len(b.solids) for b in city))
 
 
 def test_round_trip_keeps_geometry(tmp_path):

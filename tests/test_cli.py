@@ -184,7 +184,11 @@ def test_change_detection_outputs(tmp_path):
 
 def test_export_keeps_every_solid_or_says_why(tmp_path):
     """Den Haag's 9 BuildingPart solids became 4; Rotterdam's MultiSurface buildings were written empty."""
+    import json
     import shutil
+
+    import jsonschema
+    from conftest import CITYJSON_SCHEMA
 
     for name in ("DH_01_subs.city.json", "rotterdam_subset.json"):
         folder = tmp_path / name.split(".")[0]
@@ -195,7 +199,21 @@ def test_export_keeps_every_solid_or_says_why(tmp_path):
     assert dh.exit_code == 0 and "9 solids" in dh.output
     check = CliRunner().invoke(cli, ["validate", str(tmp_path / "dh.city.json")])
     assert "of 9 solids valid" in check.output
-    rotterdam = CliRunner().invoke(cli, ["export", str(tmp_path / "rotterdam_subset"), "--format", "obj",
-                                         "-o", str(tmp_path / "r.obj")])
-    assert rotterdam.exit_code == 1 and "16 MultiSurface geometries" in rotterdam.output
-    assert not (tmp_path / "r.obj").exists()
+    # MultiSurface buildings are exported as surfaces: every surface with an area, in every format
+    source = json.loads(shared("citymodels/rotterdam_subset.json").read_text())
+    vertices = np.asarray(source["vertices"]) * source["transform"]["scale"]
+    rings = [vertices[surface[0]] for obj in source["CityObjects"].values() for g in obj["geometry"]
+             for surface in g["boundaries"]]
+    with_area = sum(len(np.unique(r, axis=0)) >= 3 for r in rings)  # 12 of the 248 collapse to a line or a point
+    for fmt, name in (("cityjson", "r.city.json"), ("obj", "r.obj"), ("glb", "r.glb")):
+        result = CliRunner().invoke(cli, ["export", str(tmp_path / "rotterdam_subset"), "--format", fmt,
+                                          "-o", str(tmp_path / name)])
+        assert result.exit_code == 0 and "16 buildings: 16 MultiSurface" in result.output, result.output
+    doc = json.loads((tmp_path / "r.city.json").read_text())
+    assert not list(jsonschema.Draft7Validator(json.loads(shared(CITYJSON_SCHEMA).read_text())).iter_errors(doc))
+    geoms = [g for obj in doc["CityObjects"].values() for g in obj["geometry"]]
+    assert len(geoms) == 16 and {g["type"] for g in geoms} == {"MultiSurface"}
+    assert sum(len(g["boundaries"]) for g in geoms) == with_area
+    assert (tmp_path / "r.obj").read_text().count("\nf ") >= with_area
+    check = CliRunner().invoke(cli, ["validate", str(tmp_path / "r.city.json")])
+    assert check.exit_code == 1 and "16 MultiSurface geometries" in check.output  # surfaces, never passed as solids

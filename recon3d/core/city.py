@@ -33,11 +33,16 @@ class Solid:
         counter-clockwise seen from outside the solid; inner rings clockwise.
     semantics : list of str
         One of :data:`SEMANTIC_TYPES` per surface.
+    kind : {"Solid", "MultiSurface"}
+        "MultiSurface": surfaces read from another tool's MultiSurface or
+        CompositeSurface, not known to close a volume. They are exported as they came
+        (CityJSON MultiSurface, OBJ and glTF faces) and never checked as a solid.
     """
 
     vertices: np.ndarray
     surfaces: list[list[np.ndarray]]
     semantics: list[str]
+    kind: str = "Solid"
     _triangles: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

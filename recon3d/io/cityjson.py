@@ -122,12 +122,18 @@ def cityjson_dict(city: CityModel, metadata: dict | None = None) -> dict:
     solids = [(b, lod, s) for b in city.buildings for lod, s in _sorted_solids(b)]
     vertices, remaps = _quantise([s.vertices for _, _, s in solids], scale)
     geometry: dict[str, list] = {b.id: [] for b in city.buildings}
+    degenerate = 0
     for (b, lod, solid), remap in zip(solids, remaps, strict=True):
         geom = _solid_geometry(solid, lod, remap)
+        written = 0 if geom is None else len(geom["boundaries"][0] if solid.kind == "Solid" else geom["boundaries"])
+        degenerate += len(solid.surfaces) - written
         if geom is None:
-            log.warning("building %s: LoD %s solid has no valid surface, not written", b.id, lod)
+            log.warning("building %s: LoD %s %s has no valid surface, not written", b.id, lod, solid.kind)
         else:
             geometry[b.id].append(geom)
+    if degenerate:
+        log.warning("CityJSON: %d surfaces with fewer than 3 distinct vertices at %g CRS units were left out",
+                    degenerate, float(scale[0]))
     objects: dict[str, dict] = {}
     for b in city.buildings:
         obj = {"type": "Building", "attributes": building_attributes(b), "geometry": geometry[b.id]}
@@ -210,7 +216,8 @@ def _quantise(
 
 
 def _solid_geometry(solid: Solid, lod: str, remap: np.ndarray) -> dict | None:
-    """One CityJSON ``Solid`` geometry object, or None when no surface survives.
+    """One CityJSON ``Solid`` (or, for surfaces read as such, ``MultiSurface``) geometry
+    object, or None when no surface survives.
 
     Rings are re-indexed into the file's vertex list; vertices that quantisation
     merged are removed from rings (consecutive repeats), and rings left with fewer
@@ -226,14 +233,13 @@ def _solid_geometry(solid: Solid, lod: str, remap: np.ndarray) -> dict | None:
     if not surfaces:
         return None
     types = list(dict.fromkeys(kinds))
+    values = [types.index(k) for k in kinds]
+    closed = solid.kind == "Solid"
     return {
-        "type": "Solid",
+        "type": solid.kind,
         "lod": str(lod),
-        "boundaries": [surfaces],
-        "semantics": {
-            "surfaces": [{"type": t} for t in types],
-            "values": [[types.index(k) for k in kinds]],
-        },
+        "boundaries": [surfaces] if closed else surfaces,
+        "semantics": {"surfaces": [{"type": t} for t in types], "values": [values] if closed else values},
     }
 
 
@@ -272,6 +278,9 @@ def building_attributes(building: Building) -> dict[str, Any]:
 
 #: Attributes of a block (the parent Building of BuildingParts) that describe the whole
 #: block, not a part: the reader does not pass them on to the parts.
+#: Geometry types read as surfaces that are not known to close a volume.
+SURFACE_TYPES = ("MultiSurface", "CompositeSurface")
+
 BLOCK_KEYS = ("ground_z", "roof_z", "height", "status", "reason", "parts", "area")
 
 
@@ -479,7 +488,9 @@ def read_cityjson(
 
     Every ``Building`` becomes one :class:`Building` (its ``BuildingPart`` children
     included): solids by LoD (``Solid`` geometries; the first shell, the first part's
-    solid when several parts have one of that LoD), a footprint (union of the plan
+    solid when several parts have one of that LoD; a LoD given only as
+    ``MultiSurface`` or ``CompositeSurface`` is read as a :class:`Solid` of that
+    ``kind``), a footprint (union of the plan
     views of its ground surfaces, or of all surfaces when there are no semantics;
     the largest polygon), and its attributes. ``ground_z``/``roof_z`` are taken from
     the attributes recon3d writes, else from the geometry.
@@ -489,7 +500,9 @@ def read_cityjson(
     :class:`Building` per part, with the part's id, solids and attributes, the block's
     attributes it does not have itself (except the block-wide :data:`BLOCK_KEYS`),
     and ``parent`` set to the block's id; the block's own geometry, if any, is not
-    read. So what :func:`write_cityjson` wrote comes back as the same buildings in
+    read. Geometries not read (MultiSolids, a second geometry of a LoD, objects that
+    are no building) are counted by type and reason in the model's
+    ``metadata["skipped_geometries"]``. So what :func:`write_cityjson` wrote comes back as the same buildings in
     the same order (a CityJSONSeq file: grouped by block); a part without geometry
     (a failed one) is not read, as a stand-alone building without geometry is not.
 
@@ -528,18 +541,20 @@ def read_cityjson(
         for oid, (obj, _) in objects.items()
         if obj.get("type") == "Building" and _read_as_parts(obj, objects, parts)
     }
-    buildings = []
+    buildings, skipped = [], {}
     for oid, (obj, base) in objects.items():
         try:
-            b = _city_object(oid, obj, base, objects, local, frame, split)
+            b = _city_object(oid, obj, base, objects, local, frame, split, skipped)
         except (IndexError, KeyError, TypeError, ValueError, AttributeError) as exc:
             # a vertex index beyond the vertex list, a ring that is no list of indices...
             raise InputError(f"{path}: CityObject {oid!r} has malformed geometry ({type(exc).__name__}: {exc})") from None
         if b is not None:
             buildings.append(b)
+        elif isinstance(obj, dict) and obj.get("geometry") and not obj.get("parents"):
+            _count(skipped, f"{obj.get('type')} object (not a building)")
     if not buildings:
         raise InputError(f"{path}: no Building with geometry in the file")
-    meta = {"source": str(path), "version": str(head.get("version"))}
+    meta = {"source": str(path), "version": str(head.get("version")), "skipped_geometries": skipped}
     if "referenceDate" in head.get("metadata", {}):
         meta["referenceDate"] = head["metadata"]["referenceDate"]
     return CityModel(buildings, crs or file_crs, frame, meta)
@@ -614,18 +629,18 @@ def _world_vertices(docs: list[dict]) -> tuple[np.ndarray, list[tuple[str, Any, 
     return (np.concatenate(blocks) * scale + translate if offset else np.zeros((0, 3))), items
 
 
-def _city_object(oid, obj, base, objects, local, frame, split) -> Building | None:
+def _city_object(oid, obj, base, objects, local, frame, split, skipped) -> Building | None:
     """The :class:`Building` one CityObject is read as (None: not read as one)."""
     if not isinstance(obj, dict):
         raise TypeError("the CityObject is not a JSON object")
     kind = obj.get("type")
     if kind == "Building" and oid not in split:
-        return _building(oid, obj, base, objects, local, frame)
+        return _building(oid, obj, base, objects, local, frame, skipped=skipped)
     if kind == "BuildingPart" and obj.get("parents") and obj["parents"][0] in split:
         parent = obj["parents"][0]
         block_attrs = objects[parent][0].get("attributes", {})
         inherited = {k: v for k, v in block_attrs.items() if k not in BLOCK_KEYS}
-        b = _building(oid, obj, base, objects, local, frame, inherited)
+        b = _building(oid, obj, base, objects, local, frame, inherited, skipped)
         if b is not None:
             b.parent = parent
         return b
@@ -679,15 +694,18 @@ def _building(
     local: np.ndarray,
     frame: LocalFrame,
     inherited: dict | None = None,
+    skipped: dict | None = None,
 ) -> Building | None:
     """One Building from a CityObject and its BuildingPart children (their vertex offsets applied).
 
     ``inherited`` attributes (a block's) come first; the object's own replace them.
+    Geometries not read into the building are counted in ``skipped`` by type and reason.
     """
     import shapely
 
     parts = [(obj, base)] + [objects[c] for c in obj.get("children", []) if c in objects]
     solids: dict[str, Solid] = {}
+    surface_sets: dict[str, Solid] = {}
     plan_ground, plan_all = [], []
     for part, offset in parts:
         for geom in part.get("geometry", []):
@@ -698,10 +716,18 @@ def _building(
                     plan_all.append(poly)
                     if kind == "GroundSurface":
                         plan_ground.append(poly)
-            if geom.get("type") == "Solid" and surfaces:
-                lod = str(geom.get("lod"))
-                kinds = [k or _kind_by_normal(local, rings) for k, rings in zip(kinds, surfaces, strict=True)]
-                solids.setdefault(lod, _solid(local, surfaces, kinds))
+            kind, lod = geom.get("type"), str(geom.get("lod"))
+            target = solids if kind == "Solid" else surface_sets if kind in SURFACE_TYPES else None
+            if target is None or not surfaces or lod in target:
+                _count(skipped, f"{kind} ({'another geometry of its LoD' if target is not None and surfaces else 'not read'})")
+                continue
+            kinds = [k or _kind_by_normal(local, rings) for k, rings in zip(kinds, surfaces, strict=True)]
+            target[lod] = _solid(local, surfaces, kinds, "Solid" if kind == "Solid" else "MultiSurface")
+    for lod, surface_set in surface_sets.items():  # a Solid of the same LoD says more
+        if lod in solids:
+            _count(skipped, f"{surface_set.kind} (beside a Solid of its LoD)")
+        else:
+            solids[lod] = surface_set
     plans = plan_ground or plan_all
     if not plans:
         return None
@@ -717,6 +743,11 @@ def _building(
     attrs.pop("height", None)
     status, reason = attrs.pop("status", "ok"), attrs.pop("reason", None)
     return Building(oid, shapely.orient_polygons(footprint), ground_z, roof_z, solids, status, reason, attrs)
+
+
+def _count(counts: dict | None, key: str) -> None:
+    if counts is not None:
+        counts[key] = counts.get(key, 0) + 1
 
 
 def _surfaces(geom: dict, offset: int) -> tuple[list[list[np.ndarray]], list[str | None]]:
@@ -759,11 +790,11 @@ def _plan(local: np.ndarray, rings: list[np.ndarray]):
     return poly if poly.area > 1e-6 else None
 
 
-def _solid(local: np.ndarray, surfaces: list[list[np.ndarray]], kinds: list[str]) -> Solid:
+def _solid(local: np.ndarray, surfaces: list[list[np.ndarray]], kinds: list[str], kind: str = "Solid") -> Solid:
     used = np.unique(np.concatenate([np.concatenate(s) for s in surfaces]))
     remap = np.full(len(local), -1, np.int64)
     remap[used] = np.arange(len(used))
-    return Solid(local[used], [[remap[r] for r in s] for s in surfaces], kinds)
+    return Solid(local[used], [[remap[r] for r in s] for s in surfaces], kinds, kind)
 
 
 def _all_rings(parts):

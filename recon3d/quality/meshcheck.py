@@ -144,6 +144,7 @@ def check_city(
         report[building.id] = {
             lod: check_solid(solid, planarity_tol=planarity_tol, snap=snap)
             for lod, solid in sorted(building.solids.items(), key=lambda kv: float(kv[0]))
+            if solid.kind == "Solid"  # surfaces read from another tool's MultiSurface are no solid to check
         }
     n_bad = sum(bool(v) for lods in report.values() for v in lods.values())
     log.info("mesh check: %d of %d solids have issues", n_bad, sum(map(len, report.values())))
