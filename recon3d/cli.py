@@ -46,6 +46,18 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     ctx.obj = {"quiet": quiet > 0}
 
 
+def _memory_cap(ctx, param, value):
+    """``--max-memory``: cap what the memory guards see (this process and its workers)."""
+    from recon3d.core.memory import limit_memory, parse_size
+
+    if value is not None:
+        try:
+            limit_memory(parse_size(value))
+        except ValueError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return value
+
+
 @cli.command()
 @click.argument("input_path", metavar="INPUT...", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder.")
@@ -61,6 +73,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.option("--workers", type=click.IntRange(min=1), help="Processes building the solids  [default: the CPUs available, from 32 buildings on]; the output does not depend on it.")
+@click.option("--max-memory", callback=_memory_cap, expose_value=False, metavar="SIZE", help="Memory the run may count on, e.g. 8G or 512M  [default: what the system has free]. Each large allocation (point reads, grids, matching strips, roof grids) is checked against it before it starts; the run stops naming the setting to change.")
 @click.pass_context
 def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
@@ -117,6 +130,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
 @click.option("--min-disparity", default=0, show_default=True, help="Smallest disparity searched (px).")
 @click.option("--max-disparity", default=64, show_default=True, help="Largest disparity searched (px).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+@click.option("--max-memory", callback=_memory_cap, expose_value=False, metavar="SIZE", help="Most memory matching may take, e.g. 2G  [default: what the system has free].")
 def disparity(left, right, out_path, min_disparity, max_disparity, overwrite):
     """Dense disparity of a rectified pair LEFT RIGHT (left-image disparity: x_right = x_left - d).
 

@@ -21,5 +21,11 @@ class CRSError(InputError):
     """A coordinate reference system is missing, unknown or inconsistent."""
 
 
+class MemoryLimitError(Recon3dError, MemoryError):
+    """The work asked for would need more memory than is available (or than ``--max-memory``
+    allows); the message gives both figures and the setting to change. Raised before
+    allocating, so nothing is half done."""
+
+
 class DependencyError(Recon3dError, ImportError):
     """An optional dependency needed for the requested operation is not installed."""

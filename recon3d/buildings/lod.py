@@ -20,6 +20,7 @@ import shapely
 
 from recon3d.core.city import Solid
 from recon3d.core.geo import LocalFrame
+from recon3d.core.memory import available_memory
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +140,7 @@ def lod1_solid(footprint: shapely.Polygon, z0: float, z1: float, frame: LocalFra
 #                    plane reaching down to the ground
 #   invalid_mesh     the solid failed check_solid (val3dity-style)
 #   no_points / too_low   not even a LoD1 block (no roof height, roof below 0.5 m)
+#   too_large        the roof's label grid would not fit in the memory available
 #   internal_error   an unexpected exception (logged with its traceback)
 
 #: Reason codes of a LoD that could not be built (see the module comments).
@@ -152,6 +154,7 @@ LOD_REASONS = (
     "invalid_mesh",
     "no_points",
     "too_low",
+    "too_large",
     "internal_error",
 )
 
@@ -476,9 +479,12 @@ def _label_grid(fp, points, labels, cell, min_area, *, planes=None, step=0.5) ->
     keep = lab >= 0
     if not keep.any():
         raise _LodFailure("no_roof_planes")
+    nl = int(lab.max()) + 1
+    need = h * w * (nl * 12 + 64)  # votes (int64) and one-hot scores (float32) per plane, the masks
+    if need > available_memory():
+        raise _LodFailure("too_large", f"a roof grid of {h} x {w} cells and {nl} planes needs {need / 2**30:.1f} GiB")
     col = np.clip(((points[keep, 0] - x0) / cell).astype(np.int64), 0, w - 1)
     row = np.clip(((y1 - points[keep, 1]) / cell).astype(np.int64), 0, h - 1)
-    nl = int(lab.max()) + 1
     votes = np.bincount((row * w + col) * nl + lab[keep], minlength=h * w * nl).reshape(h * w, nl)
     grid = np.where(votes.max(axis=1) > 0, votes.argmax(axis=1), -1).reshape(h, w)
     grid[~inside] = -1

@@ -103,7 +103,7 @@ def _check_record_counts(path: Path) -> None:
 
 def _check_point_count(path: Path) -> None:
     """Refuse a header whose point count the file cannot hold, or memory cannot, before reading."""
-    from recon3d.pipeline.executor import available_memory
+    from recon3d.core.memory import require_memory
 
     _check_record_counts(path)
     try:
@@ -117,12 +117,8 @@ def _check_point_count(path: Path) -> None:
     room = data * (MAX_LAZ_RATIO if compressed else 1) // max(size, 1)
     if count > room:
         raise InputError(f"{path}: the header claims {count} points but the file holds at most {room}: truncated or damaged")
-    need = count * (size + 64)  # the records, float64 coordinates and the kept attributes
-    if need > available_memory():
-        raise InputError(
-            f"{path}: {count} points need about {need / 2**30:.1f} GiB to read, more than the memory available; "
-            "cut the cloud into tiles"
-        )
+    # the records, float64 coordinates and the kept attributes
+    require_memory(count * (size + 64), f"reading its {count} points", "cut the cloud into tiles", source=path)
 
 
 def las_date(path: str | Path) -> str | None:

@@ -6,8 +6,8 @@ job's result depends only on the job (Open3D's RANSAC is seeded per call and hel
 one thread), so the output is the same for any number of workers.
 
 The module also tells what this process may use: its CPUs (affinity and container
-quota) and its memory (available memory and the cgroup's limit), which the pipeline
-checks before large allocations.
+quota) and, from :mod:`recon3d.core.memory`, its memory, which the pipeline checks
+before large allocations.
 
 Workers are started with the "forkserver" method: forking the pipeline's own process,
 which may hold OpenMP or TBB thread pools, can deadlock a child.
@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
+
+from recon3d.core.memory import available_memory
 
 __all__ = ["available_memory", "cgroup_cpus", "default_workers", "map_ordered"]
 
@@ -49,25 +51,6 @@ def cgroup_cpus(root: Path = Path("/sys/fs/cgroup")) -> float | None:
         return quota / period if quota > 0 and period > 0 else None
     except (OSError, ValueError):
         return None
-
-
-def available_memory() -> float:
-    """Bytes of memory this process can still use: MemAvailable, or the cgroup's limit if lower."""
-    available = float("inf")
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                available = float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        if limit != "max":
-            used = float(Path("/sys/fs/cgroup/memory.current").read_text())
-            available = min(available, float(limit) - used)
-    except (OSError, ValueError):
-        pass
-    return available
 
 
 def map_ordered(

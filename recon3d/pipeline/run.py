@@ -27,6 +27,7 @@ from recon3d.buildings.measure import measure_heights
 from recon3d.config import PipelineConfig
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame, Units, crs_name, crs_units
+from recon3d.core.memory import require_memory
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
 from recon3d.errors import InputError
@@ -35,7 +36,7 @@ from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
 from recon3d.io.las import las_date, read_las, write_las
 from recon3d.pipeline import output
-from recon3d.pipeline.executor import available_memory, default_workers, map_ordered
+from recon3d.pipeline.executor import default_workers, map_ordered
 from recon3d.quality import evaluate
 from recon3d.quality.rasterize import render, surface_at
 from recon3d.terrain import dsm as dsm_stage
@@ -507,14 +508,8 @@ def _check_grid_memory(s: RunState, extent, res: float) -> None:
     """Refuse a product grid that would not fit in the memory available, before allocating it."""
     lo, hi = (np.asarray(v, np.float64) for v in extent)
     cells = float(np.ceil((hi[0] - lo[0]) / res + 1) * np.ceil((hi[1] - lo[1]) / res + 1))
-    need = cells * GRID_BYTES_PER_CELL
-    available = available_memory()
-    if need > available:
-        raise InputError(
-            f"{s.input_path}: a DSM of {cells:.3g} cells of {res:g} {s.units.name} needs about "
-            f"{need / 2**30:.1f} GiB, more than the {available / 2**30:.1f} GiB available; "
-            "choose coarser cells (--set dsm.resolution=...) or cut the input into tiles"
-        )
+    require_memory(cells * GRID_BYTES_PER_CELL, f"a DSM of {cells:.3g} cells of {res:g} {s.units.name}",
+                   "choose coarser cells (--set dsm.resolution=...) or cut the input into tiles", source=s.input_path)
 
 
 #: Least share (percent) of the area two images both see that a frame-stereo DSM must

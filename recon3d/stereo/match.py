@@ -76,6 +76,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from recon3d.core.memory import require_memory
 from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -676,6 +677,11 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
     pr = cv2.copyMakeBorder(gr, ry, ry, rx, rx, cv2.BORDER_REFLECT_101)
     bytes_per_row = w * ndisp * 5  # uint8 cost and its transpose, two uint16 sums at the peak
     rows = max(STRIP_OVERLAP, params.strip_memory_mb * 2**20 // bytes_per_row)
+    # the strips do not adapt to the memory free (the result would depend on the machine)
+    busy = min(params.workers, math.ceil(h / max(rows - 2 * STRIP_OVERLAP, 2 * STRIP_OVERLAP)))
+    require_memory(max(busy, 1) * min(rows, h) * bytes_per_row,
+                   f"matching {w} x {h} px over {ndisp} disparities ({busy} strip(s) of {min(rows, h)} rows at once)",
+                   "match with fewer workers or a narrower disparity range")
     if rows >= h:
         strips = [(0, h, 0, h)]
     else:  # equal strips whose own rows are at least twice the overlap
