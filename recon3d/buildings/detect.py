@@ -152,12 +152,16 @@ GREEN_THRESHOLDS = {"ndvi": 0.3, "exg": 0.05}
 COLOUR_ONLY_THRESHOLDS = {"ndvi": 0.3, "exg": 0.15}
 
 
-def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig, units: Units) -> np.ndarray:
+def classify_vegetation(
+    cloud: PointCloud, dtm: Raster, config: BuildingsConfig, units: Units, *, noise: float = 0.0
+) -> np.ndarray:
     """(n,) bool: points of trees and bushes (ASPRS class 5 in cloud.laz).
 
     A point at least ``vegetation_min_height`` above the terrain is vegetation when its
-    neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``;
-    roofs and walls are planar) and it carries vegetation evidence: an echo of a
+    neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``, or
+    above 3 x the cloud's measured height ``noise`` when that is larger: a noisy roof
+    is as rough as its noise; roofs and walls are planar) and it carries vegetation
+    evidence: an echo of a
     multi-return pulse (leaves let part of the pulse through, roofs do not), or a green
     colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A coloured cloud without
     returns (stereo) is judged on colour alone: dense matching smooths tree crowns until
@@ -171,6 +175,8 @@ def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig,
     dtm : Raster
     config : BuildingsConfig
     units : Units
+    noise : float
+        Height noise of the cloud (CRS height units), e.g. the ground filter's estimate.
     """
     n = len(cloud)
     out = np.zeros(n, bool)
@@ -201,7 +207,7 @@ def classify_vegetation(cloud: PointCloud, dtm: Raster, config: BuildingsConfig,
         # like roofs' 0.035 m on the rendered city) while their colour stays green
         veg = colour[0][idx] > COLOUR_ONLY_THRESHOLDS[colour[1]]
     else:
-        veg = (feats["roughness"] > units.height(config.vegetation_roughness)) & evidence
+        veg = (feats["roughness"] > max(units.height(config.vegetation_roughness), 3.0 * noise)) & evidence
     veg = veg[feats["neighbours"]].mean(axis=1) > 0.5
     out[idx] = veg
     log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(idx), config.vegetation_min_height)

@@ -680,7 +680,8 @@ def _lower_unseen_guesses(s: RunState, noise: float) -> None:
 
 def find_buildings(s: RunState) -> None:
     cfg, u = s.config.buildings, s.units
-    s.vegetation = detect.classify_vegetation(s.cloud, s.dtm, cfg, u)
+    noise = s.auto["ground"].get("noise", {}).get("value", 0.0) / u.vertical
+    s.vegetation = detect.classify_vegetation(s.cloud, s.dtm, cfg, u, noise=noise)
     share = detect.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
     s.vegetation_share = share
     if s.footprints is not None:
