@@ -867,7 +867,6 @@ def align_footprints(
     sx, sy = np.meshgrid(grid, grid)
     disc = np.hypot(sx, sy) <= max_shift + 1e-9
     cand = np.column_stack([sx[disc], sy[disc]])
-    data = evidence.data
     scores = np.zeros((len(cand), n))  # sum of (2 e - 1) per footprint and shift
     hits = np.zeros((len(cand), n))  # building samples
     valid = np.zeros((len(cand), n))  # samples with data
