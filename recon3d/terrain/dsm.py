@@ -238,7 +238,6 @@ def make_dsm(
     area=None,
     extent: tuple[np.ndarray, np.ndarray] | None = None,
     per_source: str = "max",
-    guesses: str = "first",
 ) -> Raster:
     """Highest point per cell, small holes filled, on a grid snapped to the resolution.
 
@@ -248,12 +247,6 @@ def make_dsm(
     hole filling, returns the (rows, cols) bool cells the data should cover (see
     :func:`fill_small_holes`). ``extent`` (lowest, highest corner) replaces the cloud's
     bounds as the area of the grid. ``per_source`` as in :func:`grid_stereo`.
-
-    ``guesses`` (stereo) says where the guessed points (disparities filled in by the
-    matcher) count: ``"first"``, in every cell without an observation, before hole
-    filling; ``"last"``, only in the cells hole filling leaves empty. A frame pair's
-    guesses beside a building are the matcher's own fill along image rows and often
-    take the roof's height onto the street; a hole's low rim is a better guess there.
     """
     keep = surface_points(cloud)
     xyz = cloud.xyz[keep]
@@ -263,18 +256,11 @@ def make_dsm(
         dsm, method = grid_points(xyz, transform, shape, reducer="max"), "highest point per cell"
     else:
         source = None if source is None else np.asarray(source)[keep]
-        observed = np.asarray(observed, bool)[keep]
-        dsm = grid_stereo(xyz, transform, shape, observed=observed, source=source, per_source=per_source)
+        dsm = grid_stereo(xyz, transform, shape, observed=np.asarray(observed, bool)[keep], source=source,
+                          per_source=per_source)
         method = f"{'highest' if per_source == 'max' else 'median'} observed point per cell and pair, median over the pairs"
     raw = Raster(dsm, transform, cloud.crs)
-    cells = None if area is None else area(raw)
-    if observed is not None and guesses == "last":
-        guessed = np.where(grid_points(xyz[observed], transform, shape, reducer="count") > 0, np.nan, dsm)
-        dsm = fill_small_holes(np.where(np.isfinite(guessed), np.nan, dsm), max_hole_cells, rim=rim, area=cells)
-        dsm = np.where(np.isfinite(dsm), dsm, guessed)
-        method += ", holes filled from their rim before the matcher's guesses"
-        return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": method})
-    dsm = fill_small_holes(dsm, max_hole_cells, rim=rim, area=cells)
+    dsm = fill_small_holes(dsm, max_hole_cells, rim=rim, area=None if area is None else area(raw))
     return Raster(dsm, transform, cloud.crs, {"product": "DSM", "method": method})
 
 
