@@ -94,3 +94,27 @@ def test_building_parts_folded_or_split():
         if b.parent is not None:
             assert doc["CityObjects"][b.id]["type"] == "BuildingPart" and b.id in doc["CityObjects"][b.parent]["children"]
             assert "roofType" in b.attributes
+
+
+def test_what_is_not_read_is_counted(tmp_path):
+    """A MultiSolid building, a CompositeSurface one and a road: the surfaces are read, the
+    rest counted by type and reason, and export names them."""
+    cube = [[[0, 3, 2, 1]], [[4, 5, 6, 7]], [[0, 1, 5, 4]], [[1, 2, 6, 5]], [[2, 3, 7, 6]], [[3, 0, 4, 7]]]
+    doc = {"type": "CityJSON", "version": "2.0", "transform": {"scale": [0.001] * 3, "translate": [5e5, 5e6, 0]},
+           "metadata": {"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/32631"},
+           "CityObjects": {
+               "solids": {"type": "Building", "geometry": [{"type": "MultiSolid", "lod": "2", "boundaries": [[cube]]}]},
+               "shell": {"type": "Building", "geometry": [{"type": "CompositeSurface", "lod": "2", "boundaries": cube}]},
+               "road": {"type": "Road", "geometry": [{"type": "MultiSurface", "lod": "1", "boundaries": [[[0, 1, 2, 3]]]}]},
+           },
+           "vertices": [[0, 0, 0], [10000, 0, 0], [10000, 10000, 0], [0, 10000, 0],
+                        [0, 0, 6000], [10000, 0, 6000], [10000, 10000, 6000], [0, 10000, 6000]]}
+    (tmp_path / "buildings.city.json").write_text(json.dumps(doc))
+    city = read_cityjson(tmp_path / "buildings.city.json")
+    assert [b.id for b in city] == ["solids", "shell"]
+    assert not city.buildings[0].solids and city.buildings[1].solids["2"].kind == "MultiSurface"
+    assert city.metadata["skipped_geometries"] == {"MultiSolid (not read)": 1, "Road object (not a building)": 1}
+    result = CliRunner().invoke(cli, ["export", str(tmp_path), "--format", "obj", "-o", str(tmp_path / "c.obj")])
+    assert result.exit_code == 0 and "2 buildings: 1 MultiSurface" in result.output
+    assert "skipped: 1 MultiSolid (not read), 1 Road object (not a building)" in result.output
+    assert (tmp_path / "c.obj").read_text().count("\nf ") == 12  # the six faces of the shell, as triangles
