@@ -12,6 +12,7 @@ from recon3d.errors import InputError, MemoryLimitError
     ("dsm.resolution=-1", "between 0.01 and 1000"),  # crashed in the report after the whole run
     ("dsm.resolution=nan", "between 0.01 and 1000"),
     ("dsm.resolution=1e6", "between 0.01 and 1000"),
+    ("dsm.resolution=1e-6", "between 0.01 and 1000"),  # asked for a 44 PiB grid
     ("dsm.max_hole_area=-5", "dsm.max_hole_area"),
     ('lod.lods=["3"]', "choose among 1, 1.3, 2.2"),  # was accepted and built LoD1
     ("lod.lods=[]", "choose among"),

@@ -161,3 +161,36 @@ def test_a_signal_ends_the_run_at_once_and_leaves_nothing(tmp_path, sig, code):
     assert proc.returncode == code, err
     assert "interrupted" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_dot_as_output_and_a_parent_without_write_permission(cloud_in_folder, monkeypatch):
+    """``-o .`` in the input's folder crashed; a read-only parent failed after the whole run."""
+    from recon3d.errors import InputError
+    from recon3d.pipeline import output
+
+    before = _snapshot(cloud_in_folder.parent)
+    result = _cli("run", "cloud.laz", "-o", ".", "--overwrite", cwd=cloud_in_folder)
+    _refused(result, "holds the input", "cloud.laz")
+    assert _snapshot(cloud_in_folder.parent) == before
+    # the test may run as root, whom permissions do not stop: ask os.access's answer for a user
+    monkeypatch.setattr(output.os, "access", lambda path, mode: Path(path) != cloud_in_folder)
+    with pytest.raises(InputError, match="cannot write in .*permission denied"):
+        output.check_output(cloud_in_folder / "out", [cloud_in_folder.parent / "elsewhere.laz"], overwrite=False)
+
+
+def test_work_folders_are_private_and_unpredictable(tmp_path):
+    """A symlink planted at the predictable ``.out.partial-<pid>`` redirected the products."""
+    from recon3d.pipeline.output import remove_stale, work_folder
+
+    out = tmp_path / "out"
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    planted = tmp_path / f".out.partial-{os.getpid()}"
+    planted.symlink_to(target)
+    a, b = work_folder(out), work_folder(out)
+    assert a != b and planted not in (a, b) and not a.is_symlink()
+    assert (a.stat().st_mode & 0o777) == 0o700
+    dead = tmp_path / ".out.partial-999999999-x"
+    dead.symlink_to(target)  # a link is never followed nor removed by the clean-up
+    remove_stale(out)
+    assert dead.is_symlink() and target.is_dir() and list(target.iterdir()) == []
