@@ -158,15 +158,14 @@ def classify_vegetation(
     """(n,) bool: points of trees and bushes (ASPRS class 5 in cloud.laz).
 
     A point at least ``vegetation_min_height`` above the terrain is vegetation when its
-    neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``, or
-    above 3 x the cloud's measured height ``noise`` when that is larger: a noisy roof
-    is as rough as its noise; roofs and walls are planar) and it carries vegetation
-    evidence: an echo of a
+    neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``;
+    roofs and walls are planar) and it carries vegetation evidence: an echo of a
     multi-return pulse (leaves let part of the pulse through, roofs do not), or a green
     colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A coloured cloud without
     returns (stereo) is judged on colour alone: dense matching smooths tree crowns until
     they are as planar as roofs. A cloud with neither returns nor colours falls back on
-    scattering l3 / l1 > 0.05. The decision
+    scattering l3 / l1 > 0.05, and its roughness threshold rises to 3 x the cloud's
+    measured height ``noise`` (a noisy roof is as rough as its noise). The decision
     is then smoothed by a majority vote among the ``vegetation_neighbours`` neighbours.
 
     Parameters
@@ -207,7 +206,10 @@ def classify_vegetation(
         # like roofs' 0.035 m on the rendered city) while their colour stays green
         veg = colour[0][idx] > COLOUR_ONLY_THRESHOLDS[colour[1]]
     else:
-        veg = (feats["roughness"] > max(units.height(config.vegetation_roughness), 3.0 * noise)) & evidence
+        rough = units.height(config.vegetation_roughness)
+        if not have_returns and colour is None:  # shape alone: a noisy roof is as rough as its noise
+            rough = max(rough, 3.0 * noise)
+        veg = (feats["roughness"] > rough) & evidence
     veg = veg[feats["neighbours"]].mean(axis=1) > 0.5
     out[idx] = veg
     log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(idx), config.vegetation_min_height)
