@@ -109,8 +109,9 @@ class DsmConfig:
         Cell size in metres; None picks about twice the mean point spacing.
     max_hole_area : float or None
         Holes up to this area (m2) are filled from their neighbours; larger ones
-        (water) stay NaN. None: 25 m2 for LiDAR, 200 m2 for stereo (ground hidden
-        from one image behind buildings).
+        (water) stay NaN. None: 25 m2 for LiDAR, 200 m2 for satellite stereo and
+        1000 m2 for frame stereo, inside the area both images see (ground hidden from
+        one image behind buildings; a wide-base survey hides whole streets).
     """
 
     resolution: float | None = None

@@ -28,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from recon3d.config import PipelineConfig
 from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.io.colmap import read_scene
 from recon3d.pipeline.run import run
@@ -104,7 +105,7 @@ def _turned(cam, rot):
                   cam.height, cam.width, cam.image_path)
 
 
-def bench_one(spec, tmp: Path, *, vectors: bool) -> dict:
+def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = None) -> dict:
     folder = tmp / spec.name
     t = time.perf_counter()
     write_block_scene(folder, spec)
@@ -120,8 +121,9 @@ def bench_one(spec, tmp: Path, *, vectors: bool) -> dict:
     for name, extra in runs.items():
         t = time.perf_counter()
         try:
+            config = PipelineConfig().with_overrides(overrides) if overrides else None
             state = run(folder, tmp / f"out-{spec.name}-{name}", checkpoints=truth / "checkpoints.csv", overwrite=True,
-                        config=None, **extra)
+                        config=config, **extra)
         except Exception as exc:  # a failure is a result too
             row[name] = {"error": str(exc)[:300]}
             continue
@@ -203,6 +205,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="named configurations to run (and no random ones)")
     parser.add_argument("--vectors", action="store_true", help="also run with the truth footprints as constraints")
     parser.add_argument("--json", type=Path, help="write every figure here")
+    parser.add_argument("--set", dest="overrides", action="append", metavar="STAGE.KEY=VALUE",
+                        help="a recon3d setting for every run, as on the command line (repeatable)")
     args = parser.parse_args()
     specs = [CONFIGURATIONS[n] for n in args.only] if args.only else family(args.random)
     if args.width:
@@ -210,7 +214,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for spec in specs:
-            rows.append(bench_one(spec, Path(tmp), vectors=args.vectors))
+            rows.append(bench_one(spec, Path(tmp), vectors=args.vectors, overrides=args.overrides))
             print_table(rows[-1:])
     print()
     print_table(rows)

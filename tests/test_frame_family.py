@@ -282,3 +282,20 @@ def test_dem_that_misses_the_scene(small_scene, tmp_path):
     write_raster(Raster(np.full((10, 10), 50.0, np.float32), Affine(20.0, 0, 100000.0, 0, -20.0, 200000.0),
                         __import__("pyproj").CRS.from_epsg(32631)), dem)
     run_fails([small_scene, "--dem", dem], tmp_path, "dem.tif", "does not cover")
+
+
+def test_common_area_of_a_wide_angle_survey(tmp_path):
+    """wide_base (focal 900 px for 2000, barrel distortion, B/H 1.0): the area both images
+    see is found through the lens. Projected without the distortion, and with every cell
+    tested at the height of the highest roof within 10 m, it held 54 % of the truth's
+    common area (now 76 %), and the DSM's holes outside it stayed empty."""
+    from recon3d.io.geotiff import read_raster
+    from recon3d.pipeline.run import run
+    from recon3d.synthetic.score import _on_grid
+
+    folder = tmp_path / "scene"
+    write_block_scene(folder, CONFIGURATIONS["wide_base"].with_width(WIDTH))
+    state = run(folder, tmp_path / "out")
+    truth = _on_grid(read_raster(folder / "truth" / "views.tif"), state.dsm) >= 2
+    assert (truth & state.common_area).sum() >= 0.70 * truth.sum()
+    assert (state.common_area & ~truth).sum() <= 0.10 * truth.sum()
