@@ -76,8 +76,10 @@ def _memory_cap(ctx, param, value):
 @click.option("--max-memory", callback=_memory_cap, expose_value=False, metavar="SIZE", help="Memory the run may count on, e.g. 8G or 512M  [default: what the system has free]. Each large allocation (point reads, grids, matching strips, roof grids) is checked against it before it starts; the run stops naming the setting to change.")
 @click.pass_context
 def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
-    """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, a stereo scene folder,
-    or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom beside each).
+    """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, LAS/LAZ tiles of one
+    survey (the files, their folder or a quoted glob such as "tiles/*.laz"), a stereo
+    scene folder, or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom
+    beside each).
 
     A scene folder holds images/, a COLMAP model in sparse/ and optionally
     georef.json {"crs": "EPSG:N", "offset": [x0, y0, z0]} (world = model + offset).
@@ -91,6 +93,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
     Examples
     --------
       recon3d run delft.laz --crs EPSG:7415 -o out
+      recon3d run "ahn_tiles/*.laz" -o out
       recon3d run village.laz --footprints bati.shp --checkpoints gcp.csv -o out
       recon3d run city.laz -o out --set dsm.resolution=0.5 --overwrite
       recon3d run img1.tif img2.tif -o out

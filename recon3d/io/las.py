@@ -16,7 +16,7 @@ from recon3d.io import atomic_path, require_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["las_date", "read_las", "write_las"]
+__all__ = ["las_date", "las_tiles", "read_las", "read_las_tiles", "write_las"]
 
 #: Standard LAS dimensions carried through recon3d (extra-bytes dimensions are dropped).
 KEPT_DIMENSIONS = (
@@ -76,6 +76,101 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     if resolved is not None:
         check_area_of_use(resolved, xyz.min(axis=0), xyz.max(axis=0), source=str(path))
     return PointCloud(xyz, attributes, resolved)
+
+
+#: Suffixes of the point files a folder or a glob of tiles is made of.
+LAS_SUFFIXES = (".las", ".laz")
+
+
+def las_tiles(inputs: list[str | Path]) -> list[Path] | None:
+    """The LAS/LAZ files a list of inputs names, or None when it names none.
+
+    Each input is a LAS/LAZ file, a folder (its ``*.las`` and ``*.laz``, not its
+    sub-folders) or a glob pattern the shell did not expand (``"tiles/*.laz"``).
+    Files named twice count once; the order is the paths'.
+
+    Raises
+    ------
+    InputError
+        A folder or pattern with no LAS/LAZ file, or LAS/LAZ files mixed with other inputs.
+    """
+    import glob
+
+    found, other = [], []
+    for given in map(str, inputs):
+        path = Path(given)
+        if not path.exists() and glob.has_magic(given):
+            hits = [Path(p) for p in glob.glob(given) if Path(p).suffix.lower() in LAS_SUFFIXES]
+            if not hits:
+                raise InputError(f"{given}: no LAS/LAZ file matches the pattern")
+            found += hits
+        elif path.suffix.lower() in LAS_SUFFIXES:
+            found.append(path)
+        elif path.is_dir() and any(p.suffix.lower() in LAS_SUFFIXES for p in path.iterdir()):
+            found += [p for p in path.iterdir() if p.suffix.lower() in LAS_SUFFIXES and p.is_file()]
+        else:
+            other.append(given)
+    if found and other:
+        raise InputError(f"{other[0]}: not a LAS/LAZ tile, given with the point files {found[0].name}...; "
+                         "give tiles of one survey, or one other input")
+    return sorted(set(found), key=lambda p: str(p)) or None
+
+
+def read_las_tiles(paths: list[Path], *, crs: pyproj.CRS | None = None) -> PointCloud:
+    """Read the LAS/LAZ tiles of one survey as one cloud.
+
+    The tiles must share their CRS and point format; a tile whose header repeats
+    another's bounds and point count is the same tile given twice. The cloud holds
+    the tiles in the order of their lower-left corners (then names), so the same set
+    of files gives the same cloud however it was named.
+
+    Raises
+    ------
+    InputError
+        A tile missing or damaged (named), different point formats, a duplicate tile,
+        or more points than memory holds.
+    CRSError
+        Tiles in different CRSs.
+    """
+    from recon3d.core.memory import require_memory
+
+    headers = {}
+    for path in paths:
+        path = require_file(path, "point cloud")
+        _check_point_count(path)
+        try:
+            with laspy.open(path) as reader:
+                h = reader.header
+                headers[path] = (tuple(np.round(h.mins, 3)), tuple(np.round(h.maxs, 3)), int(h.point_count),
+                                 int(h.point_format.id), int(h.point_format.size))
+        except Exception as exc:
+            raise InputError(f"{path}: cannot read LAS/LAZ header ({_short(exc)})") from None
+    order = sorted(headers, key=lambda p: (headers[p][0][:2], str(p)))
+    first = order[0]
+    for path in order[1:]:
+        if headers[path][3] != headers[first][3]:
+            raise InputError(f"{path}: point format {headers[path][3]}, but {first.name} has {headers[first][3]}; "
+                             "tiles of one survey share their point format")
+    seen: dict = {}
+    for path in order:
+        key = headers[path][:3]
+        if key in seen:
+            raise InputError(f"{path}: the same tile as {seen[key].name} (same bounds and point count); give it once")
+        seen[key] = path
+    total = sum(h[2] for h in headers.values())
+    require_memory(total * (headers[first][4] + 64), f"reading the {total} points of {len(order)} tiles",
+                   "give fewer tiles at a time", source=first.parent)
+    clouds = []
+    for path in order:
+        cloud = read_las(path, crs=crs)
+        if clouds and not _same_crs(cloud.crs, clouds[0].crs):
+            raise CRSError(f"{path}: CRS {crs_name(cloud.crs)}, but {first.name} is in {crs_name(clouds[0].crs)}; "
+                           "reproject the tiles to one CRS")
+        clouds.append(cloud)
+    names = [n for n in clouds[0].attributes if all(n in c.attributes for c in clouds)]
+    attributes = {n: np.concatenate([c.attributes[n] for c in clouds]) for n in names}
+    log.info("%d tiles, %d points", len(clouds), total)
+    return PointCloud(np.concatenate([c.xyz for c in clouds]), attributes, clouds[0].crs)
 
 
 #: Largest compression ratio believed of a LAZ file: a header claiming more points than

@@ -34,7 +34,7 @@ from recon3d.errors import InputError
 from recon3d.io import checkpoints as checkpoints_io
 from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
-from recon3d.io.las import las_date, read_las, write_las
+from recon3d.io.las import las_date, las_tiles, read_las, read_las_tiles, write_las
 from recon3d.pipeline import output
 from recon3d.pipeline.executor import default_workers, map_ordered
 from recon3d.quality import evaluate
@@ -77,6 +77,7 @@ class RunState:
     vectors_read: bool = False
     scene: Any = None
     satellite_paths: tuple[Path, Path] | None = None
+    tile_paths: list[Path] | None = None  # LAS/LAZ tiles of one survey, read as one cloud
     cloud: PointCloud | None = None
     units: Units | None = None
     footprints: list[vectors.Footprint] | None = None
@@ -134,9 +135,10 @@ def run(
 
     Parameters
     ----------
-    input_path : path-like or pair of path-likes
-        LAS/LAZ or PLY point cloud, a frame-stereo scene folder, or two GeoTIFFs with
-        RPCs (satellite stereo).
+    input_path : path-like or sequence of path-likes
+        LAS/LAZ or PLY point cloud, LAS/LAZ tiles of one survey (files, a folder of
+        them or a glob pattern; read as one cloud), a frame-stereo scene folder, or
+        two GeoTIFFs with RPCs (satellite stereo).
     out_dir : path-like
         Output folder (see DESIGN.md for its contract).
     crs : pyproj.CRS, optional
@@ -175,15 +177,19 @@ def run(
         Bad input or an existing output folder; nothing is written then.
     """
     pair = None
-    if isinstance(input_path, tuple | list):
-        if len(input_path) == 1:
-            input_path = input_path[0]
-        elif len(input_path) == 2:
-            pair = tuple(Path(p) for p in input_path)
-            input_path = pair[0]
-        else:
-            raise InputError(f"expected one input or two satellite images, got {len(input_path)} inputs")
-    given = [input_path, *(pair or ()), footprints, checkpoints, breaklines, altimetry, dem, truth_dsm,
+    items = list(input_path) if isinstance(input_path, tuple | list) else [input_path]
+    tiles = las_tiles(items)
+    if tiles is not None:
+        input_path = tiles[0]
+        tiles = tiles if len(tiles) > 1 else None
+    elif len(items) == 1:
+        input_path = items[0]
+    elif len(items) == 2:
+        pair = tuple(Path(p) for p in items)
+        input_path = pair[0]
+    else:
+        raise InputError(f"expected one input, LAS/LAZ tiles or two satellite images, got {len(items)} inputs")
+    given = [input_path, *(pair or ()), *(tiles or ()), footprints, checkpoints, breaklines, altimetry, dem, truth_dsm,
              old_buildings, gcps]
     out_dir = output.check_output(Path(out_dir), [Path(p) for p in given if p], overwrite=overwrite)
     stale = output.remove_stale(out_dir)
@@ -192,6 +198,7 @@ def run(
     state = RunState(
         input_path=Path(input_path),
         satellite_paths=pair,
+        tile_paths=tiles,
         out_dir=out_dir,
         work_dir=work_dir,
         config=config or PipelineConfig(),
@@ -257,6 +264,13 @@ def read_inputs(s: RunState) -> None:
         s.units = crs_units(s.scene.crs, source=str(s.input_path))
         world = s.scene.sparse + s.scene.offset
         _read_vectors(s, s.scene.crs, (world.min(axis=0), world.max(axis=0)))  # before matching, which uses them
+    elif s.tile_paths:
+        s.cloud = read_las_tiles(s.tile_paths, crs=s.crs)
+        dates = [d for d in map(las_date, s.tile_paths) if d]
+        if dates:
+            s.reference_date = max(dates)
+            s.auto["reference_date"] = {"value": s.reference_date,
+                                        "reason": f"latest LAS header creation date of the {len(s.tile_paths)} tiles"}
     elif suffix in (".las", ".laz"):
         s.cloud = read_las(s.input_path, crs=s.crs)
         s.reference_date = las_date(s.input_path)
@@ -1063,8 +1077,13 @@ def _read_constraints(s: RunState, crs: pyproj.CRS) -> tuple[list[np.ndarray], n
 
 def _classified_cloud(s: RunState) -> PointCloud:
     """The input cloud with recon3d's classes: ground 2, vegetation 5, building 6, other 1,
-    noise 7 (stereo points guessed over hidden ground)."""
-    return s.cloud.with_attribute("classification", s.point_classes)
+    noise 7 (stereo points guessed over hidden ground), in a canonical order (by x, y,
+    z, then GPS time and intensity), so that one survey gives the same file whether it
+    came whole or in tiles, in any order."""
+    cloud = s.cloud.with_attribute("classification", s.point_classes)
+    a = cloud.attributes
+    keys = [a[k] for k in ("intensity", "gps_time") if k in a] + [cloud.xyz[:, 2], cloud.xyz[:, 1], cloud.xyz[:, 0]]
+    return cloud[np.lexsort(keys)]
 
 
 def _write_footprints(s: RunState, path: Path) -> None:
@@ -1095,7 +1114,9 @@ def _run_record(s: RunState) -> dict:
         "recon3d": __version__,
         "inputs": {
             "input": str(s.input_path),
-            "kind": "satellite pair" if s.satellite_paths else "stereo scene" if s.scene is not None else "point cloud",
+            "kind": "satellite pair" if s.satellite_paths else "stereo scene" if s.scene is not None
+            else f"point cloud in {len(s.tile_paths)} tiles" if s.tile_paths else "point cloud",
+            "tiles": [str(p) for p in s.tile_paths] if s.tile_paths else None,
             "second_image": str(s.satellite_paths[1]) if s.satellite_paths else None,
             "points": len(s.cloud),
             "crs": crs_name(s.cloud.crs),
