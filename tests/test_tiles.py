@@ -94,3 +94,24 @@ def test_bad_tile_sets(tiles, tmp_path):
     _refused(_cli("run", tiles / "ign_sw.laz", shared("citymodels/multi_lod.json"), "-o", tmp_path / "o5",
                   cwd=tmp_path), "not a LAS/LAZ tile")
     assert not any((tmp_path / f"o{k}").exists() for k in range(1, 6))
+
+
+def test_overlapping_tiles_keep_each_point_once(tiles, ign_run, tmp_path):
+    """Tiles delivered with buffers hold the points of the overlap twice: kept once, warned of."""
+    import json
+    import shutil
+
+    folder = tmp_path / "buffered"
+    shutil.copytree(tiles, folder)
+    las = laspy.read(shared(IGN))
+    mx = np.median(las.x)
+    band = laspy.LasData(las.header)
+    band.points = las.points[np.abs(np.asarray(las.x) - mx) < 5.0]  # a 10 m strip across two tiles
+    band.write(folder / "buffer.laz")
+    out = tmp_path / "out"
+    result = _cli("run", folder, "-o", out, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    record = json.loads((out / "run.json").read_text())
+    assert any(f"{len(band.points)} points are in two overlapping tiles" in w for w in record["warnings"])
+    assert _sha(out / "dsm.tif") == _sha(ign_run.out_dir / "dsm.tif")
+    assert _sha(out / "cloud.laz") == _sha(ign_run.out_dir / "cloud.laz")

@@ -116,11 +116,12 @@ def las_tiles(inputs: list[str | Path]) -> list[Path] | None:
     return sorted(set(found), key=lambda p: str(p)) or None
 
 
-def read_las_tiles(paths: list[Path], *, crs: pyproj.CRS | None = None) -> PointCloud:
+def read_las_tiles(paths: list[Path], *, crs: pyproj.CRS | None = None) -> tuple[PointCloud, int]:
     """Read the LAS/LAZ tiles of one survey as one cloud.
 
     The tiles must share their CRS and point format; a tile whose header repeats
-    another's bounds and point count is the same tile given twice. The cloud holds
+    another's bounds and point count is the same tile given twice. Points two tiles
+    both hold (buffers around delivered tiles) are kept once. The cloud holds
     the tiles in the order of their lower-left corners (then names), so the same set
     of files gives the same cloud however it was named.
 
@@ -170,7 +171,22 @@ def read_las_tiles(paths: list[Path], *, crs: pyproj.CRS | None = None) -> Point
     names = [n for n in clouds[0].attributes if all(n in c.attributes for c in clouds)]
     attributes = {n: np.concatenate([c.attributes[n] for c in clouds]) for n in names}
     log.info("%d tiles, %d points", len(clouds), total)
-    return PointCloud(np.concatenate([c.xyz for c in clouds]), attributes, clouds[0].crs)
+    cloud = PointCloud(np.concatenate([c.xyz for c in clouds]), attributes, clouds[0].crs)
+    first = _first_of_each(cloud)
+    return cloud[first], int((~first).sum())
+
+
+def _first_of_each(cloud: PointCloud) -> np.ndarray:
+    """(n,) bool: every point but the repeats of one already seen (same x, y, z and GPS
+    time), which tiles delivered with overlapping buffers hold twice."""
+    keys = [cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]]
+    if "gps_time" in cloud.attributes:
+        keys.append(cloud.attributes["gps_time"])
+    order = np.lexsort(keys[::-1])
+    rows = np.column_stack([k[order] for k in keys])
+    repeat = np.zeros(len(cloud), bool)
+    repeat[order[1:]] = (rows[1:] == rows[:-1]).all(axis=1)
+    return ~repeat
 
 
 #: Largest compression ratio believed of a LAZ file: a header claiming more points than

@@ -265,7 +265,9 @@ def read_inputs(s: RunState) -> None:
         world = s.scene.sparse + s.scene.offset
         _read_vectors(s, s.scene.crs, (world.min(axis=0), world.max(axis=0)))  # before matching, which uses them
     elif s.tile_paths:
-        s.cloud = read_las_tiles(s.tile_paths, crs=s.crs)
+        s.cloud, repeats = read_las_tiles(s.tile_paths, crs=s.crs)
+        if repeats:
+            s.warn(f"{repeats} points are in two overlapping tiles (same x, y, z and GPS time); each is kept once")
         dates = [d for d in map(las_date, s.tile_paths) if d]
         if dates:
             s.reference_date = max(dates)
