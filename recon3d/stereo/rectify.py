@@ -295,7 +295,7 @@ def select_pairs(
 
 
 def _inside(camera: Camera, xyz: np.ndarray) -> np.ndarray:
-    uv, depth = camera.project(xyz)
+    uv, depth = camera.project(xyz, distort=True)  # the photo as taken, lens and all
     return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
 
 
