@@ -276,11 +276,11 @@ def building_attributes(building: Building) -> dict[str, Any]:
     return out
 
 
-#: Attributes of a block (the parent Building of BuildingParts) that describe the whole
-#: block, not a part: the reader does not pass them on to the parts.
 #: Geometry types read as surfaces that are not known to close a volume.
 SURFACE_TYPES = ("MultiSurface", "CompositeSurface")
 
+#: Attributes of a block (the parent Building of BuildingParts) that describe the whole
+#: block, not a part: the reader does not pass them on to the parts.
 BLOCK_KEYS = ("ground_z", "roof_z", "height", "status", "reason", "parts", "area")
 
 
@@ -502,8 +502,8 @@ def read_cityjson(
     and ``parent`` set to the block's id; the block's own geometry, if any, is not
     read. Geometries not read (MultiSolids, a second geometry of a LoD, objects that
     are no building) are counted by type and reason in the model's
-    ``metadata["skipped_geometries"]``. So what :func:`write_cityjson` wrote comes back as the same buildings in
-    the same order (a CityJSONSeq file: grouped by block); a part without geometry
+    ``metadata["skipped_geometries"]``. So what :func:`write_cityjson` wrote comes
+    back as the same buildings in the same order (a CityJSONSeq file: grouped by block); a part without geometry
     (a failed one) is not read, as a stand-alone building without geometry is not.
 
     Parameters
@@ -635,7 +635,7 @@ def _city_object(oid, obj, base, objects, local, frame, split, skipped) -> Build
         raise TypeError("the CityObject is not a JSON object")
     kind = obj.get("type")
     if kind == "Building" and oid not in split:
-        return _building(oid, obj, base, objects, local, frame, skipped=skipped)
+        return _building(oid, obj, base, objects, local, frame, None, skipped)
     if kind == "BuildingPart" and obj.get("parents") and obj["parents"][0] in split:
         parent = obj["parents"][0]
         block_attrs = objects[parent][0].get("attributes", {})
@@ -693,8 +693,8 @@ def _building(
     objects: dict,
     local: np.ndarray,
     frame: LocalFrame,
-    inherited: dict | None = None,
-    skipped: dict | None = None,
+    inherited: dict | None,
+    skipped: dict,
 ) -> Building | None:
     """One Building from a CityObject and its BuildingPart children (their vertex offsets applied).
 
@@ -716,13 +716,13 @@ def _building(
                     plan_all.append(poly)
                     if kind == "GroundSurface":
                         plan_ground.append(poly)
-            kind, lod = geom.get("type"), str(geom.get("lod"))
-            target = solids if kind == "Solid" else surface_sets if kind in SURFACE_TYPES else None
+            gtype, lod = geom.get("type"), str(geom.get("lod"))
+            target = solids if gtype == "Solid" else surface_sets if gtype in SURFACE_TYPES else None
             if target is None or not surfaces or lod in target:
-                _count(skipped, f"{kind} ({'another geometry of its LoD' if target is not None and surfaces else 'not read'})")
+                _count(skipped, f"{gtype} ({'another geometry of its LoD' if target is not None and surfaces else 'not read'})")
                 continue
             kinds = [k or _kind_by_normal(local, rings) for k, rings in zip(kinds, surfaces, strict=True)]
-            target[lod] = _solid(local, surfaces, kinds, "Solid" if kind == "Solid" else "MultiSurface")
+            target[lod] = _solid(local, surfaces, kinds, "Solid" if gtype == "Solid" else "MultiSurface")
     for lod, surface_set in surface_sets.items():  # a Solid of the same LoD says more
         if lod in solids:
             _count(skipped, f"{surface_set.kind} (beside a Solid of its LoD)")
@@ -745,9 +745,8 @@ def _building(
     return Building(oid, shapely.orient_polygons(footprint), ground_z, roof_z, solids, status, reason, attrs)
 
 
-def _count(counts: dict | None, key: str) -> None:
-    if counts is not None:
-        counts[key] = counts.get(key, 0) + 1
+def _count(counts: dict, key: str) -> None:
+    counts[key] = counts.get(key, 0) + 1
 
 
 def _surfaces(geom: dict, offset: int) -> tuple[list[list[np.ndarray]], list[str | None]]:

@@ -5,9 +5,8 @@ solids can be built in parallel. Results come back in the order of the jobs and 
 job's result depends only on the job (Open3D's RANSAC is seeded per call and held to
 one thread), so the output is the same for any number of workers.
 
-The module also tells what this process may use: its CPUs (affinity and container
-quota) and, from :mod:`recon3d.core.memory`, its memory, which the pipeline checks
-before large allocations.
+The module also tells how many CPUs this process may use (affinity and container
+quota); its memory is :mod:`recon3d.core.memory`'s.
 
 Workers are started with the "forkserver" method: forking the pipeline's own process,
 which may hold OpenMP or TBB thread pools, can deadlock a child.
@@ -23,9 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from recon3d.core.memory import available_memory
-
-__all__ = ["available_memory", "cgroup_cpus", "default_workers", "map_ordered"]
+__all__ = ["cgroup_cpus", "default_workers", "map_ordered"]
 
 
 def default_workers() -> int:

@@ -677,11 +677,6 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
     pr = cv2.copyMakeBorder(gr, ry, ry, rx, rx, cv2.BORDER_REFLECT_101)
     bytes_per_row = w * ndisp * 5  # uint8 cost and its transpose, two uint16 sums at the peak
     rows = max(STRIP_OVERLAP, params.strip_memory_mb * 2**20 // bytes_per_row)
-    # the strips do not adapt to the memory free (the result would depend on the machine)
-    busy = min(params.workers, math.ceil(h / max(rows - 2 * STRIP_OVERLAP, 2 * STRIP_OVERLAP)))
-    require_memory(max(busy, 1) * min(rows, h) * bytes_per_row,
-                   f"matching {w} x {h} px over {ndisp} disparities ({busy} strip(s) of {min(rows, h)} rows at once)",
-                   "match with fewer workers or a narrower disparity range")
     if rows >= h:
         strips = [(0, h, 0, h)]
     else:  # equal strips whose own rows are at least twice the overlap
@@ -694,6 +689,11 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
             r1 = min(h, r0 + core)
             strips.append((r0, r1, max(0, r0 - STRIP_OVERLAP), min(h, r1 + STRIP_OVERLAP)))
     log.debug("census SGM: %d strip(s), %d disparities", len(strips), ndisp)
+    # the strips do not adapt to the memory free (the result would depend on the machine)
+    busy, tallest = min(params.workers, len(strips)), max(b - a for _, _, a, b in strips)
+    require_memory(busy * tallest * bytes_per_row,
+                   f"matching {w} x {h} px over {ndisp} disparities ({busy} strip(s) of {tallest} rows at once)",
+                   "match with fewer workers or a narrower disparity range")
 
     workspace = _Workspace()  # per-thread buffers reused from strip to strip
 

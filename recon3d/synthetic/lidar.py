@@ -101,13 +101,14 @@ def scan_city(
     material = city.face_material[prim[ok]]
     # leaves return from inside the crown, not from its hull: a depth into it
     depth = np.where(material == FOLIAGE, np.minimum(rng.exponential(crown_depth, ok.sum()), 3 * crown_depth), 0.0)
-    first = origin[ok] + direction[ok] * (t[ok] + depth)[:, None]
+    down = direction[ok]
+    first = origin[ok] + down * (t[ok] + depth)[:, None]
     # later returns through the crown: a fresh ray from just below the first hit
     crown = np.isin(material, (FOLIAGE, BARK)) & (rng.uniform(size=len(first)) < penetration)
-    start = first[crown] + direction[ok][crown] * 0.5
-    t2, prim2 = cast(start, direction[ok][crown])
+    start = first[crown] + down[crown] * 0.5
+    t2, prim2 = cast(start, down[crown])
     ok2 = np.isfinite(t2)
-    second = start[ok2] + direction[ok][crown][ok2] * t2[ok2, None]
+    second = start[ok2] + down[crown][ok2] * t2[ok2, None]
     xyz = np.vstack([first, second])
     mat = np.concatenate([material, city.face_material[prim2[ok2]]])
     classes = np.where(mat == GROUND, 2, np.where(np.isin(mat, (FOLIAGE, BARK)), 5, 6)).astype(np.uint8)
