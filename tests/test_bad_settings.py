@@ -57,7 +57,7 @@ def test_matching_and_roof_grids_check_memory_first(monkeypatch):
     import numpy as np
     import shapely
 
-    from recon3d.buildings import lod
+    from recon3d.buildings import roofgrid
     from recon3d.core.memory import LIMIT_VARIABLE
     from recon3d.stereo.match import MatchParams, match
 
@@ -68,6 +68,6 @@ def test_matching_and_roof_grids_check_memory_first(monkeypatch):
         match(left, np.roll(left, -4, axis=1), MatchParams(min_disparity=0, max_disparity=32))
     square = shapely.box(0, 0, 200, 200)
     points = np.column_stack([rng.uniform(0, 200, (500, 2)), np.full(500, 10.0)])
-    with pytest.raises(lod._LodFailure, match="roof grid of .* needs") as failure:
-        lod._label_grid(square, points, np.zeros(500, np.int64), 0.25, 1.0)
+    with pytest.raises(roofgrid.LodFailure, match="roof grid of .* needs") as failure:
+        roofgrid.label_grid(square, points, np.zeros(500, np.int64), 0.25, 1.0)
     assert failure.value.reason == "too_large"

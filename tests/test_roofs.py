@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import shapely
 
-from recon3d.buildings import lod
+from recon3d.buildings import extrude, lod, partition
 from recon3d.buildings.roofs import RoofParams, roof_type, segment_roof
 from recon3d.config import LodConfig
 from recon3d.core.city import Solid
@@ -418,11 +418,11 @@ def test_roof_part_with_a_neck_snapping_would_close():
     opened first, and the solid is valid."""
     wedge = shapely.Polygon([(0, 4), (9.998, 5), (0, 6)])
     around = shapely.box(0, 0, 10, 10).difference(wedge)
-    assert lod._necks([np.asarray(around.exterior.coords)[:-1]], 0.004).tolist() == [[9.998, 5.0]]
+    assert partition.necks([np.asarray(around.exterior.coords)[:-1]], 0.004).tolist() == [[9.998, 5.0]]
     planes = [np.array([0.0, 0.0, 1.0, -10.0]), np.array([0.0, 0.0, 1.0, -12.0])]
-    regions = lod._open_pinches([(around, 0), (wedge, 1)], 0.05, 0.004)
-    assert not any(len(lod._necks([lod._drop_close(np.asarray(p.exterior.coords)[:-1], 0.004)], 0.004)) for p, _ in regions)
-    solid = lod._partition_solid(regions, planes, 0.0, Units())
+    regions = partition.open_pinches([(around, 0), (wedge, 1)], 0.05, 0.004)
+    assert not any(len(partition.necks([partition.drop_close(np.asarray(p.exterior.coords)[:-1], 0.004)], 0.004)) for p, _ in regions)
+    solid = extrude.partition_solid(regions, planes, 0.0, Units())
     assert check_solid(solid) == []
 
 
@@ -436,7 +436,7 @@ def test_invalid_lod22_is_retried_without_small_parts(monkeypatch):
     def failing_first(*args, coarse=False, **kwargs):
         calls.append(coarse)
         if kwargs.get("intersect") and not coarse:
-            raise lod._LodFailure("invalid_mesh", "304 simulated")
+            raise lod.LodFailure("invalid_mesh", "304 simulated")
         return original(*args, coarse=coarse, **kwargs)
 
     monkeypatch.setattr(lod, "_roofed", failing_first)
