@@ -14,7 +14,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from recon3d.buildings import detect
+from recon3d.buildings import detect, vegetation
 from recon3d.core.geo import parse_crs
 from recon3d.pipeline.run import run
 
@@ -25,8 +25,8 @@ CASES = {"delft_ahn3_strip.laz": "EPSG:7415", "ign_village_2154.laz": None}
 def time_detection(state) -> tuple[float, int]:
     """Fastest of three detection runs (s) and the number of buildings."""
     cfg, u = state.config.buildings, state.units
-    veg = detect.classify_vegetation(state.cloud, state.dtm, cfg, u)
-    share = detect.vegetation_cells(state.cloud, state.dsm, veg, share=True)
+    veg = vegetation.classify_vegetation(state.cloud, state.dtm, cfg, u)
+    share = vegetation.vegetation_cells(state.cloud, state.dsm, veg, share=True)
     times, polygons = [], []
     for _ in range(3):
         start = time.perf_counter()

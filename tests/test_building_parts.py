@@ -12,7 +12,7 @@ import trimesh
 from affine import Affine
 
 from conftest import CITYJSON_SCHEMA, shared
-from recon3d.buildings import detect, lod
+from recon3d.buildings import blocks, detect, lod
 from recon3d.config import BuildingsConfig
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame, Units
@@ -55,7 +55,7 @@ def detected_city() -> CityModel:
         roof = float(np.median(data[labels == i + 1]))
         solids = {"1": lod.lod1_solid(poly, 0.0, roof, frame), "2.2": lod.lod1_solid(poly, 0.0, roof + 0.5, frame)}
         buildings.append(Building(f"b{i + 1:04d}", poly, 0.0, roof, solids, attributes={"source": "detected", "cells": i}))
-    n = detect.assign_blocks(buildings, labels, detect.building_mask(ndsm, veg, CFG, UNITS), min_shared=CFG.min_edge)
+    n = blocks.assign_blocks(buildings, labels, detect.building_mask(ndsm, veg, CFG, UNITS), min_shared=CFG.min_edge)
     assert n == 1
     return CityModel(buildings, pyproj.CRS("EPSG:7415"), frame)
 
@@ -81,9 +81,9 @@ def test_assign_blocks_skips_used_ids_and_resets():
     parts = _block(city)[1]
     parts[0].id = "block0001"  # an id a block would get
     labels = detect.label_footprints([b.footprint for b in city], _grid())
-    detect.assign_blocks(city.buildings, labels, labels > 0, min_shared=CFG.min_edge)
+    blocks.assign_blocks(city.buildings, labels, labels > 0, min_shared=CFG.min_edge)
     assert set(city.blocks()) == {"block0002"}
-    detect.assign_blocks(city.buildings, labels, np.zeros(labels.shape, bool), min_shared=CFG.min_edge)
+    blocks.assign_blocks(city.buildings, labels, np.zeros(labels.shape, bool), min_shared=CFG.min_edge)
     assert city.blocks() == {}  # no raised region: nothing is a block
 
 

@@ -30,7 +30,7 @@ from affine import Affine
 from shapely import affinity
 
 from conftest import BDUNI, shared
-from recon3d.buildings import detect, outline
+from recon3d.buildings import align, classes, detect, outline, vegetation
 from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
@@ -48,19 +48,19 @@ UNITS = Units()
 def _detected(state):
     """Run the buildings stage the way the pipeline does on a finished run's products."""
     cfg, u = state.config.buildings, state.units
-    veg = detect.classify_vegetation(state.cloud, state.dtm, cfg, u)
-    share = detect.vegetation_cells(state.cloud, state.dsm, veg, share=True)
+    veg = vegetation.classify_vegetation(state.cloud, state.dtm, cfg, u)
+    share = vegetation.vegetation_cells(state.cloud, state.dsm, veg, share=True)
     polygons = detect.detect_buildings(state.ndsm, share, cfg, u, cloud=state.cloud, dtm=state.dtm, point_vegetation=veg)
     labels = detect.label_footprints(polygons, state.dsm)
-    classes = detect.point_classes(state.cloud, state.is_ground, labels, state.dsm, state.dtm, cfg, u, vegetation=veg)
+    point_classes = classes.point_classes(state.cloud, state.is_ground, labels, state.dsm, state.dtm, cfg, u, vegetation=veg)
     xyz = state.cloud.xyz
     height = xyz[:, 2] - state.dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
     truth = quality.vegetation_truth_proxy(state.cloud, state.reference_classes, height, min_height=u.height(2.5))
     scores = quality.evaluate_against_classes(
-        polygons, state.cloud, state.reference_classes, point_classes=classes, vegetation_truth=truth, units=u
+        polygons, state.cloud, state.reference_classes, point_classes=point_classes, vegetation_truth=truth, units=u
     )
     return SimpleNamespace(
-        polygons=polygons, vegetation=veg, share=share, classes=classes, truth=truth, scores=scores,
+        polygons=polygons, vegetation=veg, share=share, classes=point_classes, truth=truth, scores=scores,
         state=state,
     )
 
@@ -172,7 +172,7 @@ def test_ign_against_bduni(ign, bduni):
     assert raw["object_completeness"] == 100.0 and raw["object_correctness"] == 100.0
     state = ign.state
     evidence = detect.building_evidence(state.ndsm, ign.share, CFG, state.units)
-    shifted, shift, support = detect.align_footprints([f.polygon for f in footprints], evidence, 1.0)
+    shifted, shift, support = align.align_footprints([f.polygon for f in footprints], evidence, 1.0)
     assert np.hypot(*shift[0]) <= 1.0
     aligned = quality.evaluate_footprints(ign.polygons, [shifted[i] for i in inside])
     assert aligned["area_completeness"] >= 95.0  # measured 96.9 %
@@ -187,7 +187,7 @@ def test_ign_against_bduni(ign, bduni):
 def test_ign_footprint_support(ign, bduni):
     footprints, inside = bduni
     evidence = detect.building_evidence(ign.state.ndsm, ign.share, CFG, ign.state.units)
-    _, shift, support = detect.align_footprints([f.polygon for f in footprints], evidence, 1.0)
+    _, shift, support = align.align_footprints([f.polygon for f in footprints], evidence, 1.0)
     assert np.all(support[inside] >= 0.9)  # a building under each footprint on the tile
     outside = np.setdiff1d(np.arange(len(footprints)), inside)
     assert np.all(np.isnan(support[outside]))  # no data under the others
@@ -373,11 +373,11 @@ def test_classify_vegetation_synthetic():
     returns = np.concatenate([np.ones(len(roof)), np.full(len(tree), 3), np.ones(len(ground))]).astype(np.uint8)
     cloud = PointCloud(xyz, {"number_of_returns": returns})
     dtm = _raster(np.zeros((70, 90)), origin=(-2.0, -7.0))
-    veg = detect.classify_vegetation(cloud, dtm, CFG, UNITS)
+    veg = vegetation.classify_vegetation(cloud, dtm, CFG, UNITS)
     assert veg[len(roof) : len(roof) + len(tree)].mean() > 0.9
     assert veg[: len(roof)].mean() < 0.01 and not veg[-len(ground) :].any()
     # without return numbers or colours the scattering of the crown decides
-    bare = detect.classify_vegetation(PointCloud(xyz), dtm, CFG, UNITS)
+    bare = vegetation.classify_vegetation(PointCloud(xyz), dtm, CFG, UNITS)
     assert bare[len(roof) : len(roof) + len(tree)].mean() > 0.8 and bare[: len(roof)].mean() < 0.01
 
 
@@ -396,7 +396,7 @@ def test_align_footprints_recovers_the_shift():
     west, north = ev.transform.c, ev.transform.f
     truth = shapely.box(west + 15, north - 18, west + 25, north - 10)
     moved = affinity.translate(truth, 0.6, -0.4)
-    (back,), shift, support = detect.align_footprints([moved], ev, 1.0)
+    (back,), shift, support = align.align_footprints([moved], ev, 1.0)
     assert shift[0] == pytest.approx([-0.6, 0.4], abs=0.15)
     assert support[0] > 0.95 and back.symmetric_difference(truth).area < 0.1 * truth.area
 
@@ -412,7 +412,7 @@ def test_align_footprints_reports_missing_data_and_buildings():
         shapely.Polygon([(west + 20, north - 30), (west + 30, north - 20), (west + 30, north - 30), (west + 20, north - 20)]),
         shapely.Polygon(),
     ]
-    shifted, shift, support = detect.align_footprints(polygons, ev, 1.0)
+    shifted, shift, support = align.align_footprints(polygons, ev, 1.0)
     assert len(shifted) == len(polygons) == len(support)
     assert support[0] > 0.95 and support[1] < 0.1
     assert np.isnan(support[2]) and np.isnan(support[3]) and np.isnan(support[5])
@@ -424,9 +424,9 @@ def test_align_footprints_caps_the_shift():
     ev = _evidence()
     west, north = ev.transform.c, ev.transform.f
     far = shapely.box(west + 17.5, north - 18, west + 27.5, north - 10)  # 2.5 m off
-    _, shift, _ = detect.align_footprints([far], ev, 1.0)
+    _, shift, _ = align.align_footprints([far], ev, 1.0)
     assert np.hypot(*shift[0]) <= 1.0 + 1e-9
-    assert detect.align_footprints([], ev, 1.0)[0] == []
+    assert align.align_footprints([], ev, 1.0)[0] == []
 
 
 # --------------------------------------------------------------------------- evaluation

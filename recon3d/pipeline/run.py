@@ -22,7 +22,7 @@ import numpy as np
 import pyproj
 
 from recon3d import __version__
-from recon3d.buildings import detect, lod
+from recon3d.buildings import align, blocks, classes, detect, lod, vegetation
 from recon3d.buildings.measure import measure_heights
 from recon3d.config import PipelineConfig
 from recon3d.core.city import Building, CityModel
@@ -736,12 +736,12 @@ def _lower_unseen_guesses(s: RunState, noise: float) -> None:
 def find_buildings(s: RunState) -> None:
     cfg, u = s.config.buildings, s.units
     noise = s.auto["ground"].get("noise", {}).get("value", 0.0) / u.vertical
-    s.vegetation = detect.classify_vegetation(s.cloud, s.dtm, cfg, u, noise=noise)
-    share = detect.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
+    s.vegetation = vegetation.classify_vegetation(s.cloud, s.dtm, cfg, u, noise=noise)
+    share = vegetation.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
     s.vegetation_share = share
     if s.footprints is not None:
         evidence = detect.building_evidence(s.ndsm, share, cfg, u)
-        polygons, shifts, support = detect.align_footprints(
+        polygons, shifts, support = align.align_footprints(
             [f.polygon for f in s.footprints], evidence, u.length(cfg.footprint_shift)
         )
         ids = [f.id for f in s.footprints]
@@ -775,7 +775,7 @@ def find_buildings(s: RunState) -> None:
         buildings.append(Building(ids[i], poly, heights.ground_z[i], heights.roof_z[i], attributes=attrs[i]))
     if s.footprints is None:  # parts of a block split at height jumps: Building + BuildingParts
         raised = detect.building_mask(s.ndsm, share, cfg, u)
-        detect.assign_blocks(buildings, s.labels, raised, min_shared=u.length(cfg.min_edge))
+        blocks.assign_blocks(buildings, s.labels, raised, min_shared=u.length(cfg.min_edge))
     lo = s.cloud.bounds[0]
     # the date of the data, not of the run: the same input gives the same bytes
     meta = {"referenceDate": s.reference_date} if s.reference_date else {}
@@ -885,7 +885,7 @@ def evaluate_products(s: RunState) -> None:
     u = s.units
     tables = []
     with_solid = np.array([False] + [bool(b.solids) for b in s.city])
-    s.point_classes = detect.point_classes(
+    s.point_classes = classes.point_classes(
         s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid
     )
     if s.auto.get("dsm.hidden_ground", {}).get("value"):

@@ -212,7 +212,7 @@ def _overlap(pair: RectifiedPair) -> np.ndarray:
 
 def _foliage(cloud: PointCloud) -> np.ndarray | None:
     """(n,) bool: points coloured like foliage (the colour-only vegetation threshold)."""
-    from recon3d.buildings.detect import COLOUR_ONLY_THRESHOLDS, vegetation_index
+    from recon3d.buildings.vegetation import COLOUR_ONLY_THRESHOLDS, vegetation_index
 
     index = vegetation_index(cloud)
     return None if index is None else index[0] > COLOUR_ONLY_THRESHOLDS[index[1]]

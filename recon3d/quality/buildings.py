@@ -20,7 +20,7 @@ import shapely
 from affine import Affine
 from scipy.spatial import cKDTree
 
-from recon3d.buildings.detect import vegetation_index
+from recon3d.buildings.vegetation import vegetation_index
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 

@@ -1,0 +1,64 @@
+"""The ASPRS class of every point of recon3d's cloud: ground, vegetation, building, other."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon3d.config import BuildingsConfig
+from recon3d.core.geo import Units
+from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.raster import Raster
+
+__all__ = ["point_classes"]
+
+
+def point_classes(
+    cloud: PointCloud,
+    is_ground: np.ndarray,
+    labels: np.ndarray,
+    grid: Raster,
+    dtm: Raster,
+    config: BuildingsConfig,
+    units: Units,
+    *,
+    vegetation: np.ndarray | None = None,
+    with_solid: np.ndarray | None = None,
+) -> np.ndarray:
+    """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
+
+    A point is building when it lies in a footprint cell (``labels`` > 0, and the
+    footprint has a solid when ``with_solid`` is given), is not ground nor vegetation,
+    and stands at least ``min_height / 2`` above the terrain. Vegetation wins over
+    building: a crown over a roof stays a tree.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    is_ground : (n,) bool
+    labels : (rows, cols) int
+        1 + footprint index per cell (:func:`label_footprints`).
+    grid, dtm : Raster
+        The grid of ``labels`` and the terrain.
+    config : BuildingsConfig
+    units : Units
+    vegetation : (n,) bool, optional
+    with_solid : (m + 1,) bool, optional
+        Per label value (index 0 = background) whether that footprint counts.
+    """
+    xyz = cloud.xyz
+    classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
+    row, col = grid.rowcol(xyz[:, 0], xyz[:, 1])
+    rows, cols = grid.shape
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    lab = np.zeros(len(cloud), np.int64)
+    lab[ok] = labels[row[ok], col[ok]]
+    in_building = lab > 0 if with_solid is None else np.asarray(with_solid, bool)[lab]
+    above = xyz[:, 2] - dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
+    building = in_building & ~is_ground & (np.nan_to_num(above, nan=-np.inf) >= units.height(config.min_height / 2))
+    if vegetation is not None:
+        vegetation = np.asarray(vegetation, bool) & ~is_ground
+        building &= ~vegetation
+        classes[vegetation] = ASPRS.HIGH_VEGETATION
+    classes[building] = ASPRS.BUILDING
+    classes[is_ground] = ASPRS.GROUND
+    return classes
