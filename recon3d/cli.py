@@ -58,6 +58,14 @@ def _memory_cap(ctx, param, value):
     return value
 
 
+def _with_old_heights(config, field_name: str | None, reference: str | None):
+    """The configuration with the --old-height-* options applied."""
+    import dataclasses
+
+    values = {k: v for k, v in (("height_field", field_name), ("height_reference", reference)) if v}
+    return dataclasses.replace(config, change=dataclasses.replace(config.change, **values)) if values else config
+
+
 @cli.command()
 @click.argument("input_path", metavar="INPUT...", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder.")
@@ -65,6 +73,8 @@ def _memory_cap(ctx, param, value):
 @click.option("--footprints", type=click.Path(path_type=Path), help="Building outlines (GeoJSON, GeoPackage, Shapefile) to use instead of detection.")
 @click.option("--checkpoints", type=click.Path(path_type=Path), help="CSV of reference points: x,y,z[,id][,kind].")
 @click.option("--old-buildings", type=click.Path(path_type=Path), help="Older building database (footprints or CityJSON) to detect changes against.")
+@click.option("--old-height-field", metavar="NAME", help="Height attribute of --old-buildings when it has none of the usual names (roof_z, height, hauteur, roof_height, h_dak_max...).")
+@click.option("--old-height-reference", type=click.Choice(["ground", "absolute"]), help="What the old heights are measured from  [default: known from the usual names, else decided from the data].")
 @click.option("--gcps", type=click.Path(path_type=Path), help="Ground control points (CSV x,y,z in the output CRS) for a satellite pair's absolute bias.")
 @click.option("--breaklines", type=click.Path(path_type=Path), help="3-D lines (roads, water edges) the DTM must honour.")
 @click.option("--altimetry", type=click.Path(path_type=Path), help="Spot heights the DTM must honour (vector file or CSV x,y,z).")
@@ -75,7 +85,7 @@ def _memory_cap(ctx, param, value):
 @click.option("--workers", type=click.IntRange(min=1), help="Processes building the solids  [default: the CPUs available, from 32 buildings on]; the output does not depend on it.")
 @click.option("--max-memory", callback=_memory_cap, expose_value=False, metavar="SIZE", help="Memory the run may count on, e.g. 8G or 512M  [default: what the system has free]. Each large allocation (point reads, grids, matching strips, roof grids) is checked against it before it starts; the run stops naming the setting to change.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, old_height_field, old_height_reference, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, LAS/LAZ tiles of one
     survey (the files, their folder or a quoted glob such as "tiles/*.laz"), a stereo
     scene folder, or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom
@@ -103,7 +113,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
     from recon3d.pipeline.run import run as run_pipeline
 
     config = PipelineConfig.from_toml(config_path) if config_path else PipelineConfig()
-    config = config.with_overrides(list(overrides))
+    config = _with_old_heights(config.with_overrides(list(overrides)), old_height_field, old_height_reference)
     user_crs = parse_crs(crs) if crs else None
     with _StageProgress(enabled=not ctx.obj["quiet"]) as progress:
         state = run_pipeline(
@@ -248,8 +258,10 @@ def export(out_dir, fmt, dest, overwrite):
 @cli.command()
 @click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
 @click.option("--old-buildings", required=True, type=click.Path(path_type=Path), help="Older building database (Shapefile, GeoPackage, GeoJSON or CityJSON).")
+@click.option("--old-height-field", metavar="NAME", help="Height attribute of --old-buildings when it has none of the usual names (roof_z, height, hauteur, roof_height, h_dak_max...).")
+@click.option("--old-height-reference", type=click.Choice(["ground", "absolute"]), help="What the old heights are measured from  [default: known from the usual names, else decided from the data].")
 @click.option("--overwrite", is_flag=True, help="Replace earlier change products in OUT.")
-def change(out_dir, old_buildings, overwrite):
+def change(out_dir, old_buildings, old_height_field, old_height_reference, overwrite):
     """Compare an older building database with the buildings of a run (OUT).
 
     Writes OUT/changes.geojson (one feature per change: class, confidence, old and new
@@ -273,13 +285,16 @@ def change(out_dir, old_buildings, overwrite):
     ndsm = read_raster(out_dir / "ndsm.tif")
     crs = city.crs or ndsm.crs
     old, _ = read_footprints(old_buildings, crs=crs)
-    result = change_mod.detect_changes(old, city, ndsm, units=crs_units(crs))
+    params = change_mod.ChangeParams(height_field=old_height_field, height_reference=old_height_reference)
+    result = change_mod.detect_changes(old, city, ndsm, units=crs_units(crs), config=params)
     write_features(target, *change_mod.change_features(result), crs)
     write_raster(change_mod.change_raster(result, ndsm), out_dir / "changes.tif")
     write_cityjson(change_mod.updated_model(old, city, result), out_dir / "buildings_updated.city.json")
     click.echo("changes: " + ", ".join(f"{k} {v}" for k, v in sorted(result.summary.items()) if v))
     for note in result.notes:
         click.echo(f"note: {note}")
+    for warning in result.warnings:
+        click.echo(f"warning: {warning}", err=True)
 
 
 @cli.command()

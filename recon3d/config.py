@@ -25,6 +25,7 @@ from recon3d.errors import InputError
 
 __all__ = [
     "BuildingsConfig",
+    "ChangeConfig",
     "DsmConfig",
     "DtmConfig",
     "GroundConfig",
@@ -275,6 +276,28 @@ class LodConfig:
             raise InputError("lod.min_plane_points must be >= 3 and lod.max_planes >= 1")
 
 
+@dataclass(frozen=True)
+class ChangeConfig:
+    """Change detection against an older building database (``--old-buildings``).
+
+    Attributes
+    ----------
+    height_field : str, optional
+        The old database's height attribute, when it has none of the usual names
+        (``roof_z``, ``height``, ``hauteur``, ``roof_height``, ``h_dak_max``...).
+    height_reference : {"ground", "absolute"}, optional
+        What the old heights are measured from; by default known from the usual
+        names, or decided from the data (``roof_height``), and said in run.json.
+    """
+
+    height_field: str | None = None
+    height_reference: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.height_reference not in (None, "ground", "absolute"):
+            raise InputError(f"change.height_reference {self.height_reference!r}: choose ground or absolute")
+
+
 #: Levels of detail :class:`LodConfig` can build.
 LODS = ("1", "1.3", "2.2")
 
@@ -289,6 +312,7 @@ class PipelineConfig:
     dtm: DtmConfig = field(default_factory=DtmConfig)
     buildings: BuildingsConfig = field(default_factory=BuildingsConfig)
     lod: LodConfig = field(default_factory=LodConfig)
+    change: ChangeConfig = field(default_factory=ChangeConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> PipelineConfig:

@@ -993,12 +993,16 @@ def detect_changes(s: RunState) -> None:
         return
     from recon3d.quality import change
 
+    cfg = s.config.change
     s.changes = change.detect_changes(
         s.old_buildings, s.city, s.ndsm, units=s.units,
+        config=change.ChangeParams(height_field=cfg.height_field, height_reference=cfg.height_reference),
         vegetation=s.ndsm.like((np.nan_to_num(s.vegetation_share) > 0.5).astype(np.float32)),
         density=change.point_density(s.cloud.xyz, s.ndsm),
     )
-    s.report["changes"] = {"summary": s.changes.summary, "notes": s.changes.notes}
+    for message in s.changes.warnings:
+        s.warn(message)
+    s.report["changes"] = {"summary": s.changes.summary, "notes": s.changes.notes, "warnings": s.changes.warnings}
 
 
 def write_products(s: RunState) -> None:

@@ -44,9 +44,10 @@ Pure functions: the caller writes the files.
 from __future__ import annotations
 
 import logging
+import re
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import shapely
@@ -83,10 +84,18 @@ CHANGE_CODES: dict[str, int] = {
     "not_observed": 6,
 }
 
-#: Attribute names (case-insensitive) holding an absolute roof height in the old database.
-ROOF_Z_FIELDS = ("roof_z", "z_roof", "altitude_toit")
+#: Attribute names (case-insensitive) holding an absolute roof height in the old
+#: database (3DBAG's ``b3_h_dak_*`` and AHN's ``h_dak_*`` are heights above NAP).
+ROOF_Z_FIELDS = ("roof_z", "z_roof", "altitude_toit", "z_max", "zmax", "z_max_toit", "h_dak_max", "h_dak_70p",
+                 "h_dak_50p", "b3_h_dak_max", "b3_h_dak_70p", "b3_h_dak_50p", "absolute_height")
 #: Attribute names holding a height above ground.
-HEIGHT_FIELDS = ("height", "hauteur", "measuredheight", "h_building")
+HEIGHT_FIELDS = ("height", "hauteur", "measuredheight", "h_building", "building_height", "bldg_height", "hoogte",
+                 "height_above_ground", "relative_height")
+#: Attribute names whose reference (ground or datum) databases do not agree on: it is
+#: decided from the data (see :func:`_resolve_reference`).
+AMBIGUOUS_HEIGHT_FIELDS = ("roof_height", "roofheight", "h_roof", "max_height", "z")
+#: Metres per foot, for heights written with a unit ("35 ft").
+_FOOT = 0.3048
 
 
 @dataclass(frozen=True)
@@ -121,6 +130,19 @@ class ChangeParams:
         New buildings smaller than this (m2) are not reported as new.
     min_density : float
         Point density (points/m2) below which confidence drops (when a density raster is given).
+    block_new_area, block_new_height : float
+        A region of building evidence inside a matched block but outside every old
+        outline (grown by ``shift``) is a new building when it covers at least
+        ``block_new_area`` (m2) at ``block_new_height`` (m) or more: the old database
+        mapped the block house by house, and one house is missing from it.
+    extension_share : float
+        Such a region touching one old building only, smaller than this share of its
+        area, is that building's extension (a footprint change), not a new building.
+    height_field : str, optional
+        Name of the old database's height attribute, when none of the usual names.
+    height_reference : {"ground", "absolute"}, optional
+        What the old heights are measured from; by default known from the attribute's
+        name, or decided from the data for ambiguous names (``roof_height``).
     """
 
     overlap_share: float = 0.1
@@ -133,6 +155,15 @@ class ChangeParams:
     min_coverage: float = 0.5
     min_new_area: float = 4.0
     min_density: float = 2.0
+    block_new_area: float = 25.0
+    block_new_height: float = 2.5
+    extension_share: float = 0.5
+    height_field: str | None = None
+    height_reference: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.height_reference not in (None, "ground", "absolute"):
+            raise InputError(f"old height reference {self.height_reference!r}: choose ground or absolute")
 
 
 @dataclass
@@ -156,11 +187,15 @@ class ChangeResult:
         Number of records per class (every class present, zeros included).
     notes : list of str
         Repairs, skipped checks and other remarks for run.json / the report.
+    warnings : list of str
+        What the user must see (terminal, report): no heights found, heights that
+        disagree with the data.
     """
 
     changes: list[dict[str, Any]] = field(default_factory=list)
     summary: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -209,15 +244,53 @@ def _new_buildings(city: CityModel, notes: list[str]) -> list[Building]:
     return kept
 
 
-def _old_heights(attrs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
-    """Absolute roof z (n,) and height above ground (n,) of the old buildings, NaN if absent."""
-    roof = np.full(len(attrs), np.nan)
-    height = np.full(len(attrs), np.nan)
+class OldHeights(NamedTuple):
+    """Heights of the old buildings as read from their attributes."""
+
+    values: np.ndarray  # (n,) float, CRS height units, NaN where absent
+    field: str | None  # the attribute they came from (the most common one)
+    reference: str | None  # "ground", "absolute" or "auto" (decided from the data)
+
+
+def _old_heights(attrs: list[dict], params: ChangeParams, units: Units) -> OldHeights:
+    """The old buildings' heights: ``params.height_field`` or the first usual name found."""
+    names = ((params.height_field.lower(),) if params.height_field else
+             ROOF_Z_FIELDS + HEIGHT_FIELDS + AMBIGUOUS_HEIGHT_FIELDS)
+    values = np.full(len(attrs), np.nan)
+    used: Counter = Counter()
     for i, a in enumerate(attrs):
         low = {str(k).lower(): v for k, v in a.items()}
-        roof[i] = _first_number(low, ROOF_Z_FIELDS)
-        height[i] = _first_number(low, HEIGHT_FIELDS)
-    return roof, height
+        for name in names:
+            v = _number(low.get(name), units)
+            if np.isfinite(v):
+                values[i] = v
+                used[name] += 1
+                break
+    if not used:
+        return OldHeights(values, None, None)
+    field_name = used.most_common(1)[0][0]
+    if params.height_reference:
+        reference = params.height_reference
+    elif field_name in ROOF_Z_FIELDS:
+        reference = "absolute"
+    elif field_name in HEIGHT_FIELDS:
+        reference = "ground"
+    else:
+        reference = "auto"
+    return OldHeights(values, field_name, reference)
+
+
+def _number(value, units: Units) -> float:
+    """A height from an attribute value: a number, or text such as "12.5", "12,5 m", "41 ft"."""
+    if isinstance(value, bool) or value is None:
+        return float("nan")
+    if isinstance(value, int | float | np.number):
+        return float(value)
+    match = re.fullmatch(r"\s*([-+]?\d+(?:[.,]\d+)?)\s*(m|ft|feet|')?\s*", str(value))
+    if not match:
+        return float("nan")
+    v = float(match.group(1).replace(",", "."))
+    return units.height(v * _FOOT) if match.group(2) in ("ft", "feet", "'") else v
 
 
 def _first_number(attrs: dict, names: tuple[str, ...]) -> float:
@@ -458,6 +531,9 @@ def _group_record(
     old_u = shapely.union_all(ctx["old_polys"][oi])
     new_b = [ctx["new"][j] for j in ni]
     new_u = shapely.union_all([b.footprint for b in new_b])
+    carved = ctx.get("carved")
+    if carved is not None and new_u.intersects(carved):  # new houses of the block are records of their own
+        new_u = shapely.difference(new_u, carved)
     fp = _compare_footprints(old_u, new_u, u.length(p.shift))
     ev = evidence(new_u, ctx["ndsm"], u.height(p.min_height), ctx["vegetation"], ctx["density"])
     rec = _base(oi, ni, ctx, new_u, fp, ev)
@@ -479,7 +555,8 @@ def _group_record(
     dh = _height_difference(rec)
     if np.isfinite(dh):
         rec["dh"] = dh * u.vertical
-        h_changed = abs(dh) > u.height(p.height_threshold)
+        # several old buildings under one new block are compared one by one (_block_height_records)
+        h_changed = abs(dh) > u.height(p.height_threshold) and len(oi) == 1
         if h_changed:
             flags.append("height_changed")
             strengths.append(_margin(dh, u.height(p.height_threshold), True))
@@ -607,12 +684,18 @@ def detect_changes(
 ) -> ChangeResult:
     """Compare an old building database with a newly derived city model.
 
+    Groups of linked old and new outlines are compared as wholes; where one new block
+    covers several old buildings (a terrace the data cannot split), each old building
+    is also compared on its own with the nDSM under it (height changes), and building
+    evidence in the block outside every old outline is reported as new buildings.
+
     Parameters
     ----------
     old : list of Footprint-like
         Objects with ``id``, ``polygon`` (shapely, same CRS as ``new``) and
-        ``attributes`` (dict; heights read from ``roof_z`` (absolute) or ``height`` /
-        ``hauteur`` (above ground), roof type from ``roof_type``).
+        ``attributes`` (dict; heights from the usual attribute names, see
+        :data:`ROOF_Z_FIELDS`, :data:`HEIGHT_FIELDS`, :data:`AMBIGUOUS_HEIGHT_FIELDS`,
+        or ``config.height_field``; roof type from ``roof_type``).
     new : CityModel
         Buildings of the run; those with status "failed" (no solid) are no evidence.
     ndsm : Raster
@@ -636,17 +719,15 @@ def detect_changes(
     """
     units = units or Units()
     notes: list[str] = []
+    warnings: list[str] = []
     old_ids, old_polys, old_attrs = _clean_old(old, notes)
     if not len(old_polys):
         raise InputError("old building database: no polygon with an area")
     _check_overlap(old_polys, new, ndsm)
-    old_roof, old_height = _old_heights(old_attrs)
-    if not (np.isfinite(old_roof).any() or np.isfinite(old_height).any()):
-        notes.append(
-            "old building database has no heights (roof_z or height): height changes not checked"
-        )
     _note_overlaps(old_polys, notes)
     new_b = _new_buildings(new, notes)
+    new_polys = np.array([b.footprint for b in new_b], dtype=object)
+    groups = match_groups(old_polys, new_polys, config.overlap_share, units.length(config.shift))
     ctx = {
         "params": config,
         "units": units,
@@ -656,13 +737,16 @@ def detect_changes(
         "old_ids": old_ids,
         "old_polys": old_polys,
         "old_attrs": old_attrs,
-        "old_roof": old_roof,
-        "old_height": old_height,
         "new": new_b,
     }
-    new_polys = np.array([b.footprint for b in new_b], dtype=object)
+    measured, ground = _old_evidence(groups, ctx)
+    ctx["measured"], ctx["ground"] = measured, ground
+    ctx["old_roof"], ctx["old_height"] = _old_height_values(
+        _old_heights(old_attrs, config, units), measured, ground, units, notes, warnings)
+    in_blocks = _new_in_blocks(groups, ctx)
+    ctx["carved"] = shapely.union_all([r["geometry"] for r in in_blocks]).buffer(
+        units.length(config.shift), join_style="mitre") if in_blocks else None
     changes = []
-    groups = match_groups(old_polys, new_polys, config.overlap_share, units.length(config.shift))
     for oi, ni in groups:
         if oi and ni:
             rec = _group_record(oi, ni, ctx)
@@ -672,10 +756,147 @@ def detect_changes(
             rec = _new_only_record(ni, ctx)
         if rec is not None:
             changes.append(_tidy(rec))
+        if len(oi) > 1 and ni:
+            changes += [_tidy(r) for r in _block_height_records(oi, ni, ctx)]
+    changes += [_tidy(r) for r in in_blocks]
     summary = {k: 0 for k in CHANGE_CODES}
     summary.update(Counter(r["class"] for r in changes))
     log.info("change detection: %s", ", ".join(f"{k} {v}" for k, v in summary.items() if v))
-    return ChangeResult(changes, summary, notes)
+    return ChangeResult(changes, summary, notes, warnings)
+
+
+def _old_evidence(groups, ctx) -> tuple[np.ndarray, np.ndarray]:
+    """Per old building (n,): the nDSM height under it (90th percentile inside the
+    outline shrunk by the shift) and the terrain height of the new buildings it is
+    linked with (absolute, area-weighted), NaN where unknown."""
+    p, u = ctx["params"], ctx["units"]
+    polys = ctx["old_polys"]
+    shrunk = _shrink(polys, u.length(p.shift))
+    measured = np.full(len(polys), np.nan)
+    ground = np.full(len(polys), np.nan)
+    for i, geom in enumerate(shrunk):
+        r, c, expected = _cells(geom, ctx["ndsm"])
+        values = ctx["ndsm"].data[r, c]
+        values = values[np.isfinite(values)]
+        if len(values) >= max(p.min_coverage * expected, 1):
+            measured[i] = float(np.percentile(values, 90))
+    for oi, ni in groups:
+        if oi and ni:
+            new_b = [ctx["new"][j] for j in ni]
+            ground[oi] = _weighted(np.array([b.ground_z for b in new_b]), np.array([b.footprint.area for b in new_b]))
+    return measured, ground
+
+
+def _old_height_values(heights: OldHeights, measured, ground, units: Units, notes: list, warnings: list):
+    """(old_roof_z, old_height) arrays (n,) from the old heights and their reference;
+    an ambiguous reference is decided by which one agrees with the data."""
+    nan = np.full(len(heights.values), np.nan)
+    if heights.field is None:
+        warnings.append(
+            "old building database has no height attribute (looked for "
+            f"{', '.join(ROOF_Z_FIELDS[:3] + HEIGHT_FIELDS[:3] + AMBIGUOUS_HEIGHT_FIELDS[:1])}...): height changes not "
+            "checked; name it with --old-height-field")
+        return nan, nan
+    v = heights.values
+    reference = heights.reference
+    ok = np.isfinite(v) & np.isfinite(measured) & np.isfinite(ground)
+    off = {"ground": np.abs(v - measured)[ok], "absolute": np.abs(v - ground - measured)[ok]}
+    if reference == "auto":
+        if not ok.any():
+            reference = "absolute"
+            notes.append(f"old heights in {heights.field!r}: no building to tell their reference by; read as absolute")
+        else:
+            reference = min(off, key=lambda k: float(np.median(off[k])))
+            other = "absolute" if reference == "ground" else "ground"
+            notes.append(
+                f"old heights in {heights.field!r} read as {'above ground' if reference == 'ground' else 'absolute'}: "
+                f"median difference to the data {np.median(off[reference]) * units.vertical:.2f} m, "
+                f"against {np.median(off[other]) * units.vertical:.2f} m the other way")
+    else:
+        notes.append(f"old heights in {heights.field!r}, {'above ground' if reference == 'ground' else 'absolute'}")
+    if ok.sum() >= 3 and np.median(off[reference]) > units.height(5.0):
+        warnings.append(
+            f"old heights in {heights.field!r} differ from the data by a median "
+            f"{np.median(off[reference]) * units.vertical:.1f} m: check --old-height-reference and their unit")
+    return (v, nan) if reference == "absolute" else (nan, v)
+
+
+def _block_height_records(oi: list[int], ni: list[int], ctx: dict[str, Any]) -> list[dict[str, Any]]:
+    """Height changes of old buildings that share one new block, each judged on the
+    nDSM under its own outline (flag ``in_block``)."""
+    p, u = ctx["params"], ctx["units"]
+    out = []
+    block_ids = [ctx["new"][j].id for j in ni]
+    for i in oi:
+        old_rel = ctx["old_height"][i]
+        if not np.isfinite(old_rel):
+            old_rel = ctx["old_roof"][i] - ctx["ground"][i]
+        dh = ctx["measured"][i] - old_rel
+        if not (np.isfinite(dh) and abs(dh) > u.height(p.height_threshold)):
+            continue
+        geom = ctx["old_polys"][i]
+        ev = evidence(geom, ctx["ndsm"], u.height(p.min_height), ctx["vegetation"], ctx["density"])
+        rec = _base([i], [], ctx, geom, None, ev)
+        rec.update({"class": "height_changed", "flags": "height_changed,in_block", "block_new_ids": block_ids,
+                    "dh": dh * u.vertical, "new_height": ctx["measured"][i]})
+        rec["confidence"] = _confidence(ev, _margin(dh, u.height(p.height_threshold), True), p, u)
+        out.append(rec)
+    return out
+
+
+def _new_in_blocks(groups, ctx: dict[str, Any]) -> list[dict[str, Any]]:
+    """New buildings inside blocks (new buildings linked with several old ones): building evidence (new outlines, nDSM at
+    least ``block_new_height``, no vegetation) outside every old outline grown by the
+    shift, opened by three cells, each region then given back the strip along the old
+    outlines (within the new outlines) and kept from ``block_new_area`` on. A region
+    touching one old building only and smaller than ``extension_share`` of it is that
+    building's extension instead (left to its group's footprint comparison); so is
+    any growth of an old building that stands alone."""
+    import rasterio.features
+    from scipy import ndimage
+
+    p, u = ctx["params"], ctx["units"]
+    ndsm = ctx["ndsm"]
+    # blocks: new buildings linked with several old ones (beside one old building alone, growth is its extension)
+    matched = [ctx["new"][j].footprint for oi, ni in groups if len(oi) > 1 and ni for j in ni]
+    if not matched:
+        return []
+    shift = u.length(p.shift)
+    old_grown = shapely.buffer(ctx["old_polys"], shift, join_style="mitre")
+
+    def burn(geoms) -> np.ndarray:
+        return rasterio.features.rasterize([(g, 1) for g in geoms], out_shape=ndsm.shape, transform=ndsm.transform,
+                                           fill=0, dtype="uint8").astype(bool)
+
+    mask = burn(matched) & ~burn(old_grown) & (np.nan_to_num(ndsm.data, nan=-np.inf) >= u.height(p.block_new_height))
+    if ctx["vegetation"] is not None:
+        mask &= ~(np.nan_to_num(ctx["vegetation"].data) > 0.5)
+    mask = ndimage.binary_opening(mask, structure=np.ones((3, 3), bool))  # no strips a cell wide
+    labels, n = ndimage.label(mask)
+    if not n:
+        return []
+    # each region given back the strip along the old outlines it was kept off, inside the new outlines
+    within = shapely.difference(shapely.union_all(matched), shapely.union_all(ctx["old_polys"]))
+    tree = shapely.STRtree(ctx["old_polys"])
+    out = []
+    for k in range(1, n + 1):
+        region = shapely.union_all([shapely.geometry.shape(g) for g, _ in rasterio.features.shapes(
+            (labels == k).astype(np.uint8), mask=labels == k, transform=ndsm.transform)])
+        region = shapely.intersection(region.buffer(shift + ndsm.resolution, join_style="mitre"), within)
+        region = max(shapely.get_parts(region), key=lambda g: g.area, default=region)
+        if region.area < u.area(p.block_new_area):
+            continue
+        touched = tree.query(region, predicate="dwithin", distance=ndsm.resolution)
+        if len(touched) == 1 and region.area < p.extension_share * ctx["old_polys"][touched[0]].area:
+            continue  # beside one old building only, and smaller than a house: its extension
+        ev = evidence(region, ndsm, u.height(p.min_height), ctx["vegetation"], ctx["density"])
+        rec = _base([], [], ctx, region, None, ev)
+        inside = [b.id for b in ctx["new"] if b.footprint.intersects(region)]
+        rec.update({"class": "new", "flags": "in_block", "block_new_ids": inside,
+                    "new_area": _m2(region.area, u), "new_height": ev["ndsm_height"]})
+        rec["confidence"] = _confidence(ev, min(ev["support"] / max(p.min_support, 1e-9), 1.0), p, u)
+        out.append(rec)
+    return out
 
 
 def _tidy(rec: dict) -> dict:
@@ -738,9 +959,7 @@ def change_features(
         if changed_only and rec["class"] in ("unchanged", "not_observed"):
             continue
         geoms.append(rec["geometry"])
-        p = {k: v for k, v in rec.items() if k != "geometry"}
-        p["old_ids"] = ",".join(rec["old_ids"])
-        p["new_ids"] = ",".join(rec["new_ids"])
+        p = {k: ",".join(v) if isinstance(v, list) else v for k, v in rec.items() if k != "geometry"}
         p["code"] = CHANGE_CODES[rec["class"]]
         props.append(p)
     return geoms, props
@@ -792,7 +1011,7 @@ def updated_model(old: list, new_city: CityModel, result: ChangeResult) -> CityM
             "change_confidence": rec["confidence"],
             "lineage_old_ids": ",".join(rec["old_ids"]),
         }
-        if cls == "demolished":
+        if cls == "demolished" or "in_block" in rec["flags"]:  # the block's own record writes it
             continue
         if not rec["new_ids"]:  # not observed, or standing in the nDSM without a new building
             for i in rec["old_ids"]:
