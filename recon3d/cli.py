@@ -86,7 +86,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, g
 
     OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
     buildings.city.json, buildings.obj, buildings.glb, footprints.geojson,
-    report.json and run.json. Parameters left unset are chosen from the data and
+    footprints.gpkg, report.json and run.json. Parameters left unset are chosen from the data and
     recorded, with the reason, in run.json.
 
     \b
