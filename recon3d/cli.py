@@ -96,7 +96,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
 
     OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
     buildings.city.json, buildings.obj, buildings.glb, footprints.geojson,
-    report.json and run.json. Parameters left unset are chosen from the data and
+    footprints.gpkg, report.json and run.json. Parameters left unset are chosen from the data and
     recorded, with the reason, in run.json.
 
     \b

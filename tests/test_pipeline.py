@@ -6,7 +6,6 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
-
 from conftest import CITYJSON_SCHEMA, shared
 
 CONTRACT = [
@@ -20,6 +19,7 @@ CONTRACT = [
     "buildings.obj",
     "buildings.glb",
     "footprints.geojson",
+    "footprints.gpkg",
     "report.json",
 ]
 
@@ -140,8 +140,8 @@ def test_autzen_in_feet(autzen_run):
 
 def test_checkpoints_report(tmp_path, delft_run):
     """Check points taken from the provider's ground and roof points give tables per product."""
-    from recon3d.pipeline.run import run
     from recon3d.core.geo import parse_crs
+    from recon3d.pipeline.run import run
 
     cloud = delft_run.cloud
     c = delft_run.reference_classes

@@ -17,7 +17,19 @@ from pyproj.exceptions import CRSError as _ProjCRSError
 
 from recon3d.errors import CRSError
 
-__all__ = ["LocalFrame", "Units", "crs_authority", "crs_name", "crs_units", "parse_crs", "to_rasterio_crs"]
+__all__ = [
+    "CRSIdentification",
+    "LocalFrame",
+    "Units",
+    "crs_authority",
+    "crs_code",
+    "crs_name",
+    "crs_units",
+    "identify_crs",
+    "parse_crs",
+    "to_rasterio_crs",
+    "uncoded_wkt",
+]
 
 
 def parse_crs(text: str | int | pyproj.CRS, *, source: str = "--crs") -> pyproj.CRS:
@@ -45,12 +57,175 @@ def crs_authority(crs: pyproj.CRS, min_confidence: int = 70) -> tuple[str, str] 
     return crs.to_authority(min_confidence=min_confidence)
 
 
+def crs_code(crs: pyproj.CRS | None) -> str | None:
+    """The code a CRS goes by: "EPSG:7415", "EPSG:2994+6360" for a compound CRS whose
+    horizontal and vertical parts have codes but the whole has none, else None."""
+    if crs is None:
+        return None
+    auth = crs_authority(crs)
+    if auth:
+        return f"{auth[0]}:{auth[1]}"
+    parts = [crs_authority(c) for c in crs.sub_crs_list] if crs.is_compound else []
+    if len(parts) == 2 and all(parts) and parts[0][0] == parts[1][0]:
+        return f"{parts[0][0]}:{parts[0][1]}+{parts[1][1]}"
+    return None
+
+
 def crs_name(crs: pyproj.CRS | None) -> str:
-    """Short human name of a CRS, "EPSG:7415" where an authority code exists."""
+    """Short human name of a CRS: its code (:func:`crs_code`) where it has one, else its name."""
     if crs is None:
         return "none"
-    auth = crs_authority(crs)
-    return f"{auth[0]}:{auth[1]}" if auth else crs.name
+    return crs_code(crs) or crs.name
+
+
+def uncoded_wkt(crs: pyproj.CRS | None) -> str | None:
+    """The one-line WKT of a CRS that has no code (:func:`crs_code`), for the files that
+    otherwise name a CRS by its code only (OBJ header, glTF extras); None when it has one."""
+    if crs is None or crs_code(crs):
+        return None
+    return crs.to_wkt()
+
+
+#: Least confidence (PROJ's, 0-100) at which an EPSG code found for a CRS is taken.
+#: PROJ gives 100 to a CRS that carries the code or matches it name for name, 70 to
+#: one equivalent to it under other names (an ESRI WKT), 25 or less to a near miss.
+IDENTIFY_MIN_CONFIDENCE = 70
+
+
+@dataclass(frozen=True)
+class CRSIdentification:
+    """The EPSG code found for the CRS of an input, and how sure PROJ is of it.
+
+    Attributes
+    ----------
+    crs : pyproj.CRS
+        The CRS the products are written in: the EPSG definition when a code was
+        found (the same CRS, so every format can name it), else the input's own.
+    given : str
+        The name the input gave its CRS.
+    code : str or None
+        "EPSG:2994", or "EPSG:2994+6360" for a compound CRS identified part by part.
+    confidence : int or None
+        PROJ's confidence in the code (for parts identified apart, the lower one).
+    how : str
+        How the code was found, or why none was.
+    best_guess : str or None
+        Without a code: PROJ's best candidate and its confidence, which is too low or
+        not the same CRS ("EPSG:2992 at 25 %").
+    """
+
+    crs: pyproj.CRS
+    given: str
+    code: str | None
+    confidence: int | None
+    how: str
+    best_guess: str | None = None
+
+    def record(self) -> dict:
+        """The identification as run.json keeps it."""
+        return {
+            "given": self.given,
+            "epsg": self.code,
+            "confidence": self.confidence,
+            "how": self.how,
+            "best_guess": self.best_guess,
+            "written_as": "EPSG code (and its WKT)" if self.code else "WKT only",
+        }
+
+    def warnings(self) -> list[str]:
+        """What the user must know about the products' CRS (none when it has one EPSG code)."""
+        if self.code is None:
+            guess = f" (best candidate {self.best_guess})" if self.best_guess else ""
+            return [
+                f"the CRS {self.given!r} has no EPSG code PROJ can identify{guess}: the rasters, cloud.laz, "
+                "footprints.gpkg, buildings.glb and buildings.obj carry it as WKT; buildings.city.json "
+                "(referenceSystem) and footprints.geojson cannot name it"
+            ]
+        if "+" in self.code:
+            horizontal, vertical = self.code.split("+")
+            return [
+                f"the CRS {self.given!r} is {self.code} (no single EPSG code): buildings.city.json names "
+                f"the horizontal {horizontal} only (CityJSON 2.0 has one referenceSystem); heights are in "
+                f"EPSG:{vertical}"
+            ]
+        return []
+
+
+@functools.lru_cache(maxsize=32)
+def identify_crs(crs: pyproj.CRS, min_confidence: int = IDENTIFY_MIN_CONFIDENCE) -> CRSIdentification:
+    """The EPSG code of a CRS described by WKT (ESRI's or OGC's), when PROJ finds one.
+
+    A code counts only with PROJ's confidence at least ``min_confidence`` and when its
+    definition is the same CRS (:meth:`pyproj.CRS.equals`, axis order aside): the
+    products are then written in the EPSG definition. A compound CRS without a code
+    of its own is identified part by part (horizontal + vertical).
+
+    Parameters
+    ----------
+    crs : pyproj.CRS
+    min_confidence : int
+
+    Returns
+    -------
+    CRSIdentification
+    """
+    found = _epsg_match(crs, min_confidence)
+    if found:
+        code, confidence, how = found
+        return CRSIdentification(pyproj.CRS.from_epsg(code), crs.name, f"EPSG:{code}", confidence, how)
+    parts = [_epsg_match(c, min_confidence) for c in crs.sub_crs_list] if crs.is_compound else []
+    if len(parts) == 2 and all(parts):
+        code = f"EPSG:{parts[0][0]}+{parts[1][0]}"
+        how = f"no EPSG code for the pair; horizontal and vertical parts matched apart ({parts[0][2]})"
+        return CRSIdentification(pyproj.CRS.from_user_input(code), crs.name, code, min(p[1] for p in parts), how)
+    return CRSIdentification(crs, crs.name, None, None, "PROJ finds no EPSG CRS equivalent to it",
+                             _best_guess(crs))
+
+
+def _readings(crs: pyproj.CRS):
+    """The CRS as given, then re-read with its names taken as ESRI's: a WKT1 naming its
+    datum the ESRI way ("NAD83_High_Accuracy_Regional_Network") matches no EPSG datum
+    until PROJ's ESRI aliases map it."""
+    yield "matched by PROJ as given", crs
+    try:
+        esri = crs.to_wkt("WKT1_ESRI")
+    except _ProjCRSError:
+        return
+    if esri:
+        try:
+            yield "matched by PROJ with its names read as ESRI's", pyproj.CRS.from_wkt(esri)
+        except _ProjCRSError:
+            return
+
+
+def _epsg_match(crs: pyproj.CRS, min_confidence: int) -> tuple[int, int, str] | None:
+    """(code, confidence, how) of the first EPSG CRS PROJ matches to ``crs`` and that
+    is the same CRS, or None.
+
+    A WKT1 with ``TOWGS84`` (a bound CRS) is matched by the CRS it binds: its datum shift
+    to WGS84 is then PROJ's own for the code.
+    """
+    if crs.is_bound:
+        found = _epsg_match(crs.source_crs, min_confidence)
+        return (found[0], found[1], f"{found[2]}, its TOWGS84 left to PROJ's database") if found else None
+    for how, reading in _readings(crs):
+        for match in reading.list_authority(auth_name="EPSG", min_confidence=min_confidence):
+            try:
+                candidate = pyproj.CRS.from_epsg(int(match.code))
+            except (_ProjCRSError, ValueError):
+                continue
+            if candidate.equals(crs, ignore_axis_order=True):
+                return int(match.code), int(match.confidence), how
+    return None
+
+
+def _best_guess(crs: pyproj.CRS) -> str | None:
+    """PROJ's best EPSG candidate for ``crs`` at any confidence ("EPSG:2992 at 25 %"), or None."""
+    for _, reading in _readings(crs.source_crs if crs.is_bound else crs):
+        matches = reading.list_authority(auth_name="EPSG", min_confidence=1)
+        if matches:
+            return f"EPSG:{matches[0].code} at {matches[0].confidence} %"
+    return None
 
 
 #: Degrees the data may reach beyond its CRS's published area of use.

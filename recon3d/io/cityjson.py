@@ -412,11 +412,17 @@ def crs_url(crs: pyproj.CRS | None) -> str | None:
     """OGC CRS URL of ``crs`` ("https://www.opengis.net/def/crs/EPSG/0/7415"), or None.
 
     Compound CRSs keep their compound code (EPSG:7415 = RD New + NAP height), so the
-    height reference travels with the file.
+    height reference travels with the file. A compound CRS without a code of its own
+    (EPSG:2994+6360) gives its horizontal part's URL: CityJSON 2.0 has one
+    ``referenceSystem`` URL, and its schema takes no ``crs-compound`` URL.
     """
     if crs is None:
         return None
     auth = crs_authority(crs)
+    if not auth and crs.is_compound:
+        auth = crs_authority(crs.sub_crs_list[0])
+        if auth:
+            log.info("CityJSON: %s has no code of its own; referenceSystem names its horizontal part", crs.name)
     if not auth or auth[0].upper() not in _OGC_AUTHORITIES:
         log.warning("CityJSON: CRS %s has no EPSG/OGC code; referenceSystem omitted", crs_name(crs))
         return None

@@ -1,26 +1,77 @@
-"""GeoTIFF rasters through rasterio: float32, NaN nodata, tiled and compressed."""
+"""GeoTIFF rasters through rasterio: float32, NaN nodata, as Cloud Optimized GeoTIFFs.
+
+Every raster is written as a COG: internal tiles, overviews, DEFLATE with the
+floating-point predictor, the image structure first so a reader fetching ranges over
+HTTP needs one request for the header. GDAL's ``COG`` driver writes it when rasterio's
+GDAL has one (GDAL >= 3.1), else the GeoTIFF driver copies a tiled file with its
+overviews (``COPY_SRC_OVERVIEWS``), the layout the COG driver makes. No time of writing
+gets into the file (GDAL writes a TIFF DateTime only when asked): the same raster gives
+the same bytes.
+"""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
 import pyproj
 import rasterio
+import rasterio.shutil
+from rasterio.enums import Resampling
 
 from recon3d.core.geo import to_rasterio_crs
 from recon3d.core.raster import Raster
 from recon3d.errors import InputError
 from recon3d.io import atomic_path, require_file
 
-__all__ = ["read_dem", "read_raster", "write_raster"]
+__all__ = ["block_size", "overview_factors", "read_dem", "read_raster", "write_raster"]
+
+#: Compression of every raster: DEFLATE with the floating-point predictor (lossless).
+COMPRESSION = {"compress": "deflate", "predictor": 3}
+
+
+def block_size(shape: tuple[int, int]) -> int:
+    """Tile side (pixels) for a raster of ``shape``: 128 below 1024 pixels on the longer
+    side, so the small rasters of a city block still get tiles and an overview; 256
+    below 4096; 512 (GDAL's COG default, fewer requests over HTTP) beyond."""
+    longest = max(shape)
+    return 128 if longest < 1024 else 256 if longest < 4096 else 512
+
+
+def overview_factors(shape: tuple[int, int], block: int) -> list[int]:
+    """Decimation factors 2, 4, 8... until the overview fits in one tile, as the COG
+    driver's ``OVERVIEWS=AUTO`` does; none for a raster that fits in one tile."""
+    factors, longest = [], max(shape)
+    while longest > block:
+        factors.append(2 ** (len(factors) + 1))
+        longest = -(-longest // 2)
+    return factors
+
+
+def _resampling(raster: Raster) -> str:
+    """Overview resampling: heights are averaged (NaN cells left out); a raster of class
+    codes (its ``codes`` tag gives their legend) keeps the nearest code."""
+    return "nearest" if "codes" in raster.tags else "average"
+
+
+@functools.cache
+def _has_cog_driver() -> bool:
+    with rasterio.Env() as env:
+        return "COG" in env.drivers()
 
 
 def write_raster(raster: Raster, path: str | Path) -> None:
-    """Write a single-band float32 GeoTIFF (tiled 256, deflate with float predictor)."""
+    """Write a single-band float32 Cloud Optimized GeoTIFF, NaN nodata, atomically.
+
+    Parameters
+    ----------
+    raster : Raster
+        Its tags become GeoTIFF metadata.
+    path : path-like
+    """
     rows, cols = raster.shape
     profile = {
-        "driver": "GTiff",
         "width": cols,
         "height": rows,
         "count": 1,
@@ -28,16 +79,40 @@ def write_raster(raster: Raster, path: str | Path) -> None:
         "crs": to_rasterio_crs(raster.crs),
         "transform": raster.transform,
         "nodata": np.nan,
-        "compress": "deflate",
-        "predictor": 3,
+        **COMPRESSION,
     }
-    if rows >= 256 and cols >= 256:
-        profile.update(tiled=True, blockxsize=256, blockysize=256)
     with atomic_path(path) as tmp:
-        with rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(raster.data.astype(np.float32), 1)
+        if _has_cog_driver():
+            _write_cog(raster, tmp, profile)
+        else:
+            _write_tiled_copy(raster, tmp, profile)
+
+
+def _write_cog(raster: Raster, path: Path, profile: dict) -> None:
+    """The COG driver (rasterio writes in memory, GDAL copies it as a COG on close)."""
+    options = {"blocksize": block_size(raster.shape), "overviews": "AUTO",
+               "overview_resampling": _resampling(raster)}
+    with rasterio.open(path, "w", driver="COG", **profile, **options) as dst:
+        dst.write(raster.data.astype(np.float32), 1)
+        if raster.tags:
+            dst.update_tags(**raster.tags)
+
+
+def _write_tiled_copy(raster: Raster, path: Path, profile: dict) -> None:
+    """Without the COG driver: a tiled GeoTIFF in memory, its overviews built, copied
+    with them ahead of the full-resolution tiles."""
+    block = block_size(raster.shape)
+    with rasterio.MemoryFile() as mem:
+        with mem.open(driver="GTiff", **profile) as ds:
+            ds.write(raster.data.astype(np.float32), 1)
             if raster.tags:
-                dst.update_tags(**raster.tags)
+                ds.update_tags(**raster.tags)
+            factors = overview_factors(raster.shape, block)
+            if factors:
+                ds.build_overviews(factors, Resampling[_resampling(raster)])
+        with mem.open() as src:
+            rasterio.shutil.copy(src, path, driver="GTiff", tiled=True, blockxsize=block, blockysize=block,
+                                 copy_src_overviews=True, **COMPRESSION)
 
 
 def read_raster(path: str | Path) -> Raster:

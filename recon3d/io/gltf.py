@@ -27,7 +27,7 @@ import numpy as np
 import trimesh
 
 from recon3d.core.city import CityModel, Solid
-from recon3d.core.geo import crs_name
+from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
 from recon3d.io.cityjson import building_attributes
 from recon3d.io.obj import MATERIALS, highest_lod
@@ -92,6 +92,8 @@ def build_scene(city: CityModel) -> trimesh.Scene:
         "units": "CRS units",
         "note": "world = local(x, -z_gltf, y_gltf) + origin",
     }
+    if uncoded_wkt(city.crs):  # a CRS without an EPSG code travels as its WKT
+        scene.metadata["recon3d"]["crs_wkt"] = uncoded_wkt(city.crs)
     return scene
 
 

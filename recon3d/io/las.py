@@ -8,6 +8,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pyproj
+from laspy.vlrs.known import WktCoordinateSystemVlr
 
 from recon3d.core.geo import check_area_of_use, crs_name
 from recon3d.core.pointcloud import PointCloud
@@ -16,7 +17,7 @@ from recon3d.io import atomic_path, require_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["las_date", "las_tiles", "read_las", "read_las_tiles", "write_las"]
+__all__ = ["las_date", "las_tiles", "las_wkt", "read_las", "read_las_tiles", "write_las"]
 
 #: Standard LAS dimensions carried through recon3d (extra-bytes dimensions are dropped).
 KEPT_DIMENSIONS = (
@@ -246,8 +247,20 @@ def las_date(path: str | Path) -> str | None:
     return day.isoformat() if day is not None else None
 
 
+def las_wkt(crs: pyproj.CRS) -> str:
+    """The WKT of a LAS 1.4 CRS record: WKT1 as GDAL writes it, what the LAS 1.4
+    specification asks for and PDAL's writer writes, with the EPSG authority when the
+    CRS has one; WKT2 for a CRS that WKT1 cannot express."""
+    try:
+        wkt = crs.to_wkt("WKT1_GDAL")
+    except pyproj.exceptions.CRSError:
+        wkt = None
+    return wkt or crs.to_wkt()
+
+
 def write_las(cloud: PointCloud, path: str | Path) -> None:
-    """Write a cloud as LAS 1.4 (LAZ when the suffix is .laz), CRS as WKT in the header.
+    """Write a cloud as LAS 1.4 (LAZ when the suffix is .laz), CRS as WKT in the header
+    (:func:`las_wkt`).
 
     Point format 6 without colour, 7 with RGB, 8 with RGB and NIR.
     """
@@ -258,7 +271,8 @@ def write_las(cloud: PointCloud, path: str | Path) -> None:
     header.offsets = np.floor(mins)
     header.scales = np.array([0.001, 0.001, 0.001])
     if cloud.crs is not None:
-        header.add_crs(cloud.crs)
+        header.vlrs.append(WktCoordinateSystemVlr(las_wkt(cloud.crs)))
+        header.global_encoding.wkt = True
     las = laspy.LasData(header)
     las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
     names = set(las.point_format.dimension_names)

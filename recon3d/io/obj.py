@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from recon3d.core.city import Building, CityModel, Solid
-from recon3d.core.geo import crs_name
+from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -73,7 +73,8 @@ def _obj_text(city: CityModel, mtl_name: str) -> str:
     out.write(
         "# recon3d buildings\n"
         f"# CRS: {crs_name(city.crs)}\n"
-        f"# origin: {x0:.6f} {y0:.6f} {z0:.6f}\n"
+        + (f"# CRS WKT: {wkt}\n" if (wkt := uncoded_wkt(city.crs)) else "")
+        + f"# origin: {x0:.6f} {y0:.6f} {z0:.6f}\n"
         "# coordinates are local, in CRS units, Z up: world = local + origin\n"
         f"mtllib {mtl_name}\n"
     )

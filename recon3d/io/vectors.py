@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import warnings
 from dataclasses import dataclass, field
@@ -106,18 +107,42 @@ def read_terrain_vectors(path: str | Path, *, crs: pyproj.CRS) -> tuple[list[np.
     return lines, points
 
 
+#: GDAL driver and layer options per suffix. GeoJSON keeps the data's CRS (RFC7946=NO:
+#: RFC 7946 would reproject to WGS84) with a "crs" member when it has an EPSG code; a
+#: GeoPackage carries any CRS, as its EPSG code or its WKT.
+VECTOR_FORMATS = {
+    ".geojson": ("GeoJSON", {"RFC7946": "NO", "WRITE_BBOX": "YES"}),
+    ".gpkg": ("GPKG", {}),
+}
+
+
 def write_features(
     path: str | Path,
     geometries: list[shapely.Geometry],
     properties: list[dict[str, Any]],
     crs: pyproj.CRS | None,
+    *,
+    date: str | None = None,
 ) -> None:
-    """Write polygons and their properties as GeoJSON (or any GDAL vector format by suffix)."""
+    """Write polygons and their properties as GeoJSON or GeoPackage (by suffix).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.geojson`` or ``.gpkg``.
+    geometries, properties : lists of one item per feature
+    crs : pyproj.CRS or None
+    date : str, optional
+        ISO date of the data, the GeoPackage's ``last_change`` (default today, or the
+        day of ``SOURCE_DATE_EPOCH``): GDAL would write the time of writing, and the
+        same input would no longer give the same bytes.
+    """
+    driver, options = VECTOR_FORMATS[Path(path).suffix.lower()]
     keys = list(dict.fromkeys(k for p in properties for k in p))
     columns = [np.array([_plain(p.get(k)) for p in properties], dtype=object) for k in keys]
     columns = [_typed(c) for c in columns]
     wkb = np.array(shapely.to_wkb(np.array(geometries, dtype=object)), dtype=object)
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, _gdal_date(date):
         tmp.unlink()
         pyogrio.raw.write(
             tmp,
@@ -126,10 +151,24 @@ def write_features(
             fields=keys,
             geometry_type="Polygon" if all(g.geom_type == "Polygon" for g in geometries) else "Unknown",
             crs=crs.to_wkt() if crs is not None else None,
-            driver="GeoJSON",
+            driver=driver,
             layer=Path(path).name.split(".")[0],  # not the temporary name: same input, same bytes
-            layer_options={"RFC7946": "NO", "WRITE_BBOX": "YES"},
+            layer_options=options,
         )
+
+
+@contextlib.contextmanager
+def _gdal_date(date: str | None):
+    """GDAL's ``OGR_CURRENT_DATE`` (the GeoPackage ``last_change``) set to ``date`` at midnight UTC."""
+    from recon3d.io.cityjson import _today
+
+    key = "OGR_CURRENT_DATE"
+    before = pyogrio.get_gdal_config_option(key)
+    pyogrio.set_gdal_config_options({key: f"{date or _today()}T00:00:00.000Z"})
+    try:
+        yield
+    finally:
+        pyogrio.set_gdal_config_options({key: before})
 
 
 def _is_cityjson(path: Path) -> bool:

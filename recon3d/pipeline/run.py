@@ -26,7 +26,7 @@ from recon3d.buildings import align, blocks, classes, detect, lod, vegetation
 from recon3d.buildings.measure import measure_heights
 from recon3d.config import PipelineConfig
 from recon3d.core.city import Building, CityModel
-from recon3d.core.geo import LocalFrame, Units, crs_name, crs_units
+from recon3d.core.geo import CRSIdentification, LocalFrame, Units, crs_name, crs_units, identify_crs
 from recon3d.core.memory import require_memory
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
@@ -80,6 +80,7 @@ class RunState:
     tile_paths: list[Path] | None = None  # LAS/LAZ tiles of one survey, read as one cloud
     cloud: PointCloud | None = None
     units: Units | None = None
+    crs_identification: CRSIdentification | None = None  # the EPSG code found for the cloud's CRS
     footprints: list[vectors.Footprint] | None = None
     checkpoints: checkpoints_io.CheckPoints | None = None
     reference_classes: np.ndarray | None = None
@@ -415,6 +416,7 @@ def _check_cloud(s: RunState) -> None:
 
 def _read_side_inputs(s: RunState) -> None:
     """Footprints, check points and terrain constraints, once the cloud and its CRS exist."""
+    _identify_crs(s)
     s.units = crs_units(s.cloud.crs, source=str(s.input_path))
     _check_cloud(s)
     if s.cloud.has_classes():
@@ -422,6 +424,15 @@ def _read_side_inputs(s: RunState) -> None:
     if not s.vectors_read:  # frame stereo read them before matching
         _read_vectors(s, s.cloud.crs, s.cloud.bounds)
     s.work_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _identify_crs(s: RunState) -> None:
+    """Find the EPSG code of the cloud's CRS (an ESRI WKT often has one) and write every
+    product in its EPSG definition, so each format can name it; warn when none is found."""
+    s.crs_identification = identify_crs(s.cloud.crs)
+    s.cloud.crs = s.crs_identification.crs
+    for message in s.crs_identification.warnings():
+        s.warn(message)
 
 
 def _read_vectors(s: RunState, crs: pyproj.CRS, bounds: tuple[np.ndarray, np.ndarray]) -> None:
@@ -1018,7 +1029,7 @@ def write_products(s: RunState) -> None:
     write_cityjson(s.city, w / "buildings.city.json")
     write_obj(s.city, w / "buildings.obj")
     write_glb(s.city, w / "buildings.glb")
-    _write_footprints(s, w / "footprints.geojson")
+    _write_footprints(s, w / "footprints.geojson", w / "footprints.gpkg")
     if s.changes is not None:
         from recon3d.quality import change
 
@@ -1092,7 +1103,9 @@ def _classified_cloud(s: RunState) -> PointCloud:
     return cloud[np.lexsort(keys)]
 
 
-def _write_footprints(s: RunState, path: Path) -> None:
+def _write_footprints(s: RunState, *paths: Path) -> None:
+    """The footprints with their building's status and heights, to each of ``paths``
+    (GeoJSON, and a GeoPackage whose CRS GIS software reads whatever it is)."""
     u = s.units
     props = []
     for b in s.city:
@@ -1102,7 +1115,9 @@ def _write_footprints(s: RunState, path: Path) -> None:
         p.update(ground_z=_num(b.ground_z), roof_z=_num(b.roof_z), height_m=_num(b.height * u.vertical))
         p.update({k: v for k, v in b.attributes.items() if isinstance(v, str | int | float) and k not in p})
         props.append(p)
-    vectors.write_features(path, [b.footprint for b in s.city], props, s.city.crs)
+    for path in paths:
+        vectors.write_features(path, [b.footprint for b in s.city], props, s.city.crs,
+                               date=s.city.metadata.get("referenceDate"))
 
 
 def _num(v: float) -> float | None:
@@ -1126,6 +1141,7 @@ def _run_record(s: RunState) -> dict:
             "second_image": str(s.satellite_paths[1]) if s.satellite_paths else None,
             "points": len(s.cloud),
             "crs": crs_name(s.cloud.crs),
+            "crs_identification": s.crs_identification.record() if s.crs_identification else None,
             "units": {"horizontal": s.units.name, "metres_per_unit": s.units.horizontal,
                       "vertical_metres_per_unit": s.units.vertical, "vertical_from": s.units.vertical_source},
             "provider_classes": s.reference_classes is not None,
