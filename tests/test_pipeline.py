@@ -19,6 +19,7 @@ CONTRACT = [
     "buildings.city.json",
     "buildings.obj",
     "buildings.glb",
+    "buildings_3dtiles/tileset.json",
     "footprints.geojson",
     "report.json",
 ]
