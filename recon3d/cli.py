@@ -95,9 +95,9 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
     georef.json {"crs": "EPSG:N", "offset": [x0, y0, z0]} (world = model + offset).
 
     OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
-    buildings.city.json, buildings.obj, buildings.glb, footprints.geojson,
-    footprints.gpkg, report.json and run.json. Parameters left unset are chosen from the data and
-    recorded, with the reason, in run.json.
+    buildings.city.json, buildings.obj, buildings.glb, buildings_3dtiles/ (3D Tiles
+    1.1), footprints.geojson, footprints.gpkg, report.json and run.json. Parameters
+    left unset are chosen from the data and recorded, with the reason, in run.json.
 
     \b
     Examples
@@ -220,7 +220,7 @@ def report(out_dir):
 
 @cli.command()
 @click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
-@click.option("--format", "fmt", required=True, type=click.Choice(["cityjson", "cityjsonseq", "obj", "gltf", "glb"]), help="Target format.")
+@click.option("--format", "fmt", required=True, type=click.Choice(["cityjson", "cityjsonseq", "obj", "gltf", "glb", "3dtiles"]), help="Target format (3dtiles: a folder, tileset.json and tiles/*.glb).")
 @click.option("-o", "--output", "dest", type=click.Path(path_type=Path), help="File to write (default: OUT/buildings.<ext>).")
 @click.option("--overwrite", is_flag=True, help="Replace the file if it exists.")
 def export(out_dir, fmt, dest, overwrite):
@@ -231,10 +231,12 @@ def export(out_dir, fmt, dest, overwrite):
     --------
       recon3d export out --format cityjsonseq
       recon3d export out --format glb -o city.glb
+      recon3d export out --format 3dtiles -o site/buildings_3dtiles
     """
-    from recon3d.io import cityjson, gltf, obj
+    from recon3d.io import cityjson, gltf, obj, tiles3d
 
-    suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb"}[fmt]
+    suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb",
+              "3dtiles": "_3dtiles"}[fmt]
     dest = dest or out_dir / f"buildings{suffix}"
     _refuse_existing([dest, dest.with_suffix(".mtl")] if fmt == "obj" else [dest], overwrite)  # OBJ writes its .mtl
     from recon3d.errors import InputError
@@ -248,7 +250,7 @@ def export(out_dir, fmt, dest, overwrite):
         raise InputError(f"{source}: no geometry to export ({len(city)} buildings"
                          + (f"; skipped: {skipped})" if skipped else ")"))
     writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
-               "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb}
+               "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb, "3dtiles": tiles3d.write_3dtiles}
     writers[fmt](city, dest)
     click.echo(f"wrote {dest} ({len(city)} buildings: {geometries})")
     if skipped:

@@ -26,7 +26,8 @@ import numpy as np
 
 #: Products every successful LiDAR run publishes.
 PRODUCTS = ("dsm.tif", "dtm.tif", "ndsm.tif", "model_dsm.tif", "cloud.laz", "buildings.city.json", "buildings.obj",
-            "buildings.glb", "footprints.geojson", "footprints.gpkg", "report.json", "run.json")
+            "buildings.glb", "buildings_3dtiles/tileset.json", "footprints.geojson", "footprints.gpkg", "report.json",
+            "run.json")
 
 DAMAGES = ("truncated", "few_points", "flipped")
 

@@ -18,6 +18,7 @@ CONTRACT = [
     "buildings.city.json",
     "buildings.obj",
     "buildings.glb",
+    "buildings_3dtiles/tileset.json",
     "footprints.geojson",
     "footprints.gpkg",
     "report.json",

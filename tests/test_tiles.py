@@ -12,7 +12,8 @@ from conftest import IGN, shared
 
 #: Products compared byte for byte (run.json and the reports name their inputs).
 PRODUCTS = ("dsm.tif", "dtm.tif", "ndsm.tif", "model_dsm.tif", "cloud.laz", "buildings.city.json",
-            "buildings.obj", "buildings.glb", "footprints.geojson", "footprints.gpkg")
+            "buildings.obj", "buildings.glb", "buildings_3dtiles/tileset.json", "buildings_3dtiles/tiles/0_0_0.glb",
+            "footprints.geojson", "footprints.gpkg")
 
 
 def _cli(*args, cwd):

@@ -1020,6 +1020,7 @@ def write_products(s: RunState) -> None:
     from recon3d.io.cityjson import write_cityjson
     from recon3d.io.gltf import write_glb
     from recon3d.io.obj import write_obj
+    from recon3d.io.tiles3d import write_3dtiles
 
     w = s.work_dir
     for name, raster in (("dsm", s.dsm), ("dtm", s.dtm), ("ndsm", s.ndsm), ("model_dsm", s.model_dsm)):
@@ -1029,6 +1030,7 @@ def write_products(s: RunState) -> None:
     write_cityjson(s.city, w / "buildings.city.json")
     write_obj(s.city, w / "buildings.obj")
     write_glb(s.city, w / "buildings.glb")
+    write_3dtiles(s.city, w / "buildings_3dtiles")
     _write_footprints(s, w / "footprints.geojson", w / "footprints.gpkg")
     if s.changes is not None:
         from recon3d.quality import change
