@@ -302,17 +302,27 @@ def change(out_dir, old_buildings, old_height_field, old_height_reference, overw
 @cli.command()
 @click.argument("path", metavar="FILE", type=click.Path(path_type=Path))
 @click.option("--planarity", default=0.01, show_default=True, help="Largest distance (CRS units) of a vertex to its face's plane.")
-def validate(path, planarity):
+@click.option("--meshes", is_flag=True, help="Check the building meshes of a run's buildings.glb and buildings.obj (FILE: the run's folder, or one GLB or OBJ file) instead of CityJSON solids.")
+def validate(path, planarity, meshes):
     """Check every solid of every city object of a CityJSON file (BuildingParts and
     MultiSolids included) the way val3dity does (closed, 2-manifold, outward, planar
     faces, no degenerate face, positive volume); exit 1 if any fails or there is none.
     Geometries that are not solids (MultiSurface) are counted, not checked.
 
+    With --meshes, every building mesh of the GLB and OBJ exports is loaded by trimesh
+    as stored (nothing merged) and must be watertight, consistently wound and outward,
+    and accepted by manifold3d; each file's count passing and failing is printed with
+    the failing building ids; exit 1 if any fails or there is none.
+
     \b
     Examples
     --------
       recon3d validate out/buildings.city.json
+      recon3d validate --meshes out
     """
+    if meshes:
+        _validate_meshes(path)
+        return
     from recon3d.io.cityjson import solid_inventory
     from recon3d.quality.meshcheck import check_solid
 
@@ -330,6 +340,31 @@ def validate(path, planarity):
         listed = ", ".join(f"{n} {k}" for k, n in sorted(others.items()))
         click.echo(f"not solids, so not checked: {listed} geometries")
     if n_bad or not solids:
+        sys.exit(1)
+
+
+def _validate_meshes(path: Path) -> None:
+    """``validate --meshes``: check the GLB and OBJ building meshes of a run folder or of one file."""
+    from recon3d.errors import InputError
+    from recon3d.quality.meshcheck import check_mesh_file
+
+    files = [p for p in (path / "buildings.glb", path / "buildings.obj") if p.exists()] if path.is_dir() else [path]
+    if not files or not path.exists():
+        raise InputError(f"{path}: no buildings.glb or buildings.obj to check (give a run's folder, a GLB or an OBJ file)")
+    n_bad = n_solids = 0
+    for file in files:
+        results = check_mesh_file(file)
+        solids = [r for r in results if r.kind == "Solid"]
+        failing = [r for r in solids if not r.ok]
+        for r in failing:
+            click.echo(f"{file.name}: {r.id}: {', '.join(r.problems())}")
+        line = f"{file.name}: {len(solids) - len(failing)} of {len(solids)} building meshes pass, {len(failing)} fail"
+        line += f" ({', '.join(r.id for r in failing)})" if failing else ""
+        others = len(results) - len(solids)
+        click.echo(line + (f"; {others} MultiSurface meshes not checked" if others else ""))
+        n_bad += len(failing)
+        n_solids += len(solids)
+    if n_bad or not n_solids:
         sys.exit(1)
 
 

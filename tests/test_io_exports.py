@@ -261,7 +261,10 @@ def test_glb_nodes_extras_and_origin(tmp_path):
     assert all("extras" in m and m["extras"]["id"] == m["name"] for m in header["meshes"])
     extras = header["scenes"][0]["extras"]["recon3d"]
     assert extras["origin"] == list(ORIGIN) and extras["crs"] == "EPSG:7415" and extras["up"] == "Y"
-    assert all("COLOR_0" in m["primitives"][0]["attributes"] for m in header["meshes"])
+    # one primitive per building: shared vertices, the surface types as triangle ranges
+    assert all(len(m["primitives"]) == 1 for m in header["meshes"])
+    assert all(set(m["extras"]["surface_types"]) == {"GroundSurface", "WallSurface", "RoofSurface"} for m in header["meshes"])
+    assert nodes["ell"]["extras"]["geometry_type"] == "Solid"
 
     scene = trimesh.load(path)
     assert sorted(scene.graph.nodes_geometry) == ["cube", "ell", "yard"]
@@ -289,8 +292,10 @@ def test_glb_is_y_up_local_float32(tmp_path):
         np.testing.assert_allclose(got, expected.astype(np.float32), rtol=0, atol=1e-5)
         # a proper rotation keeps the faces outward: same positive volume
         assert mesh.volume == pytest.approx(solid.to_trimesh().volume, rel=1e-5)
-        colours = np.unique(mesh.visual.vertex_attributes["color"], axis=0)
-        assert len(colours) == 3  # roof, wall, ground
+        assert mesh.is_watertight and mesh.is_winding_consistent  # as loaded, nothing merged
+        assert len(mesh.vertices) == len(expected)  # one vertex per position
+        roof_first, roof_count = mesh.metadata["surface_types"]["RoofSurface"]
+        assert (mesh.face_normals[roof_first : roof_first + roof_count, 1] > 0.99).all()  # roofs face +Y
 
 
 # --------------------------------------------------------------------------- OBJ
@@ -308,6 +313,9 @@ def test_obj_volume_bounds_and_materials(tmp_path):
     objects = [line for line in text.splitlines() if line.startswith("o ")]
     assert objects == ["o cube", "o ell", "o yard"]
 
+    per_building = trimesh.load(path, split_objects=True, group_material=False, process=False)
+    assert sorted(per_building.geometry) == ["cube", "ell", "yard"]
+    assert all(m.is_watertight and m.is_winding_consistent for m in per_building.geometry.values())
     mesh = trimesh.load(path, force="mesh")
     volumes = [b.solids[max(b.solids, key=float)].to_trimesh().volume for b in city.buildings[:3]]
     expected = 100 * 10 + L_SHAPE.area * (9.1234 - 2.5) + COURTYARD.area * 6

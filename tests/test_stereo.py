@@ -33,6 +33,17 @@ def _table(state, product, reference):
     return next(t for t in state.report["accuracy"] if t["product"] == product and t["reference"] == reference)
 
 
+def test_stereo_building_meshes_closed(stereo_run):
+    """Roofs from matched stereo (noisier planes than LiDAR's): closed meshes in GLB and OBJ all the same."""
+    from recon3d.quality.meshcheck import check_mesh_file
+
+    built = {b.id for b in stereo_run.city if b.solids}
+    for name in ("buildings.glb", "buildings.obj"):
+        checks = check_mesh_file(stereo_run.out_dir / name)
+        assert {c.id for c in checks} == built
+        assert [c.id for c in checks if not c.ok] == [], name
+
+
 def test_rectification_is_measured(stereo_run):
     pair = stereo_run.auto["stereo"]["pairs"][0]
     assert pair["vertical_parallax_px"]["n"] >= 50
@@ -263,6 +274,9 @@ def test_demo_command(tmp_path):
     assert table["DSM", "check points (ground)"]["rms"] <= 0.3
     assert table["DSM", "check points (roof)"]["rms"] <= 0.5
     assert (out / "products" / "buildings.city.json").exists()
+    # every building mesh of the demo's GLB and OBJ: watertight, outward, manifold3d NoError
+    meshes = CliRunner().invoke(cli, ["validate", "--meshes", str(out / "products")])
+    assert meshes.exit_code == 0 and meshes.output.count(" building meshes pass, 0 fail") == 2, meshes.output
     again = CliRunner().invoke(cli, ["demo", "-o", str(out)])
     assert again.exit_code == 1 and "--overwrite" in again.output
 

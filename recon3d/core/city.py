@@ -5,15 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-import mapbox_earcut
 import numpy as np
 import pyproj
 import shapely
 import trimesh
 
 from recon3d.core.geo import LocalFrame
+from recon3d.core.mesh import SolidMesh, newell_normal, solid_mesh, triangulate_surface
 
-__all__ = ["SEMANTIC_TYPES", "Building", "CityModel", "Solid"]
+__all__ = ["SEMANTIC_TYPES", "Building", "CityModel", "Solid", "newell_normal", "triangulate_surface"]
 
 #: CityJSON semantic surface types used for building solids.
 SEMANTIC_TYPES = ("GroundSurface", "WallSurface", "RoofSurface")
@@ -43,7 +43,7 @@ class Solid:
     surfaces: list[list[np.ndarray]]
     semantics: list[str]
     kind: str = "Solid"
-    _triangles: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _mesh: SolidMesh | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -51,61 +51,28 @@ class Solid:
         if len(self.surfaces) != len(self.semantics):
             raise ValueError("one semantic type per surface is required")
 
-    def to_trimesh(self) -> trimesh.Trimesh:
-        """Triangulate every surface (earcut in the surface's own plane).
+    def mesh(self) -> SolidMesh:
+        """The solid's triangles on welded vertices, without T-junctions (:func:`~recon3d.core.mesh.solid_mesh`).
 
-        Returns a mesh with ``metadata["semantics"]``, one surface type per triangle,
-        and ``metadata["surface_index"]`` giving each triangle's surface. A solid is
-        not changed once built, so the triangles are computed once (the model DSM,
-        the OBJ and the GLB all ask for them).
+        A solid is not changed once built, so they are computed once (the model DSM,
+        the OBJ, the GLB and the checks all ask for them).
         """
-        if self._triangles is None:
-            tris = [triangulate_surface(self.vertices, rings) for rings in self.surfaces]
-            faces = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
-            index = np.repeat(np.arange(len(tris), dtype=np.int64), [len(t) for t in tris])
-            self._triangles = (faces, index)
-        faces, index = self._triangles
-        mesh = trimesh.Trimesh(self.vertices.copy(), faces.copy(), process=False)
+        if self._mesh is None:
+            self._mesh = solid_mesh(self.vertices, self.surfaces)
+        return self._mesh
+
+    def to_trimesh(self) -> trimesh.Trimesh:
+        """The triangles of :meth:`mesh` as a :class:`trimesh.Trimesh` (not processed).
+
+        A closed solid gives a watertight, consistently wound mesh with outward
+        normals. ``metadata["semantics"]`` holds one surface type per triangle and
+        ``metadata["surface_index"]`` each triangle's surface.
+        """
+        vertices, faces, index = self.mesh()
+        mesh = trimesh.Trimesh(vertices.copy(), faces.copy(), process=False)
         mesh.metadata["semantics"] = [self.semantics[i] for i in index]
         mesh.metadata["surface_index"] = index.copy()
         return mesh
-
-
-def newell_normal(points: np.ndarray) -> np.ndarray:
-    """Unnormalised normal of a (k, 3) polygon ring by Newell's method (robust to collinear runs)."""
-    p = np.asarray(points, dtype=np.float64)
-    q = np.roll(p, -1, axis=0)
-    return np.array(
-        [
-            np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
-            np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
-            np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
-        ]
-    )
-
-
-def triangulate_surface(vertices: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
-    """Triangles (m, 3) of vertex indices covering one planar surface with holes.
-
-    The triangles keep the orientation of the outer ring. earcut is named
-    explicitly so every machine produces the same triangles.
-    """
-    outer = vertices[rings[0]]
-    normal = newell_normal(outer)
-    if not np.any(normal):
-        return np.zeros((0, 3), np.int64)
-    drop = int(np.argmax(np.abs(normal)))
-    keep = [a for a in range(3) if a != drop]
-    index = np.concatenate(rings)
-    xy = vertices[index][:, keep]
-    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    tri = mapbox_earcut.triangulate_float64(xy, ends).reshape(-1, 3)
-    tri = index[tri]
-    if len(tri):
-        a, b, c = (vertices[tri[:, k]] for k in range(3))
-        flip = np.einsum("ij,j->i", np.cross(b - a, c - a), normal) < 0
-        tri[flip] = tri[flip][:, ::-1]
-    return tri
 
 
 @dataclass

@@ -1,7 +1,9 @@
 """Binary glTF (GLB) export of the buildings of a :class:`~recon3d.core.city.CityModel`.
 
-One node per building, named by its id, holding the building's highest-LoD solid.
-glTF specifics handled here:
+One node per building, named by its id, holding the building's highest-LoD solid as
+one mesh of one primitive: the triangles of :meth:`~recon3d.core.city.Solid.mesh`,
+on shared vertices and without T-junctions, so that trimesh, Blender and manifold3d
+load each building as one closed, outward-facing shell. glTF specifics handled here:
 
 - **float32**: glTF stores float32 positions, so vertices stay in the model's
   :class:`~recon3d.core.geo.LocalFrame` (millimetres survive); the frame origin
@@ -9,11 +11,15 @@ glTF specifics handled here:
 - **Y up**: glTF is +Y up, recon3d is Z up; positions are rotated
   ``(x, y, z) -> (x, z, -y)`` (a proper rotation, so triangle winding and outward
   normals are kept). Back to the CRS: ``world = (x, -z_gltf, y_gltf) + origin``.
-- **Colours**: roofs, walls and ground get the colours of
-  :data:`recon3d.io.obj.MATERIALS` as vertex colours (``COLOR_0``, one vertex per
-  triangle corner so faces stay flat-coloured) under one matte white PBR material.
-- **Attributes**: id, status, reason, heights and ``building.attributes`` are in
-  both the node's and the mesh's ``extras``.
+- **Semantics**: the triangles are ordered by surface type (ground, walls, roofs)
+  and the mesh's ``extras["surface_types"]`` gives, per CityJSON type, the first
+  triangle and the count: ``{"RoofSurface": [first, count], ...}``. A vertex shared
+  by a wall and a roof has one colour in glTF, so surfaces are not coloured by
+  type (that would split the shell at every eave); one matte material, and no
+  normals, so viewers shade every face flat.
+- **Attributes**: id, status, reason, heights, ``geometry_type`` ("Solid", or
+  "MultiSurface" for surfaces read from another tool that close no volume) and
+  ``building.attributes`` are in both the node's and the mesh's ``extras``.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from recon3d.core.city import CityModel, Solid
 from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
 from recon3d.io.cityjson import building_attributes
-from recon3d.io.obj import MATERIALS, highest_lod
+from recon3d.io.obj import MATERIALS, highest_lod, surface_order
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +45,8 @@ __all__ = ["GLTF_FROM_LOCAL", "write_glb"]
 #: (3, 3) rotation taking local Z-up (x, y, z) to glTF Y-up (x, z, -y): ``p_gltf = R @ p``.
 GLTF_FROM_LOCAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
-_GREY = (0.6, 0.6, 0.6)
+#: Base colour (RGBA, 0-1) of the one material: the walls' colour.
+_COLOUR = [*MATERIALS["WallSurface"][1], 1.0]
 
 
 def write_glb(city: CityModel, path: str | Path) -> None:
@@ -78,11 +85,12 @@ def build_scene(city: CityModel) -> trimesh.Scene:
         lod = highest_lod(building)
         if lod is None:
             continue
-        mesh = _building_mesh(building.solids[lod])
-        extras = {"id": str(building.id), "lod": lod, **building_attributes(building)}
+        solid = building.solids[lod]
+        mesh, ranges = _building_mesh(solid)
+        extras = {"id": str(building.id), "lod": lod, "geometry_type": solid.kind, **building_attributes(building)}
         if building.parent is not None:
             extras["parent"] = building.parent  # the block this part belongs to
-        mesh.metadata.update(extras)
+        mesh.metadata.update(extras, surface_types=ranges)
         name = str(building.id)
         scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
     scene.metadata["recon3d"] = {
@@ -97,28 +105,21 @@ def build_scene(city: CityModel) -> trimesh.Scene:
     return scene
 
 
-def _building_mesh(solid: Solid) -> trimesh.Trimesh:
-    """Triangulated solid in glTF axes, one vertex per triangle corner, coloured by semantics.
+def _building_mesh(solid: Solid) -> tuple[trimesh.Trimesh, dict[str, list[int]]]:
+    """The solid's welded triangles in glTF axes, ordered by surface type.
 
     Returns
     -------
-    trimesh.Trimesh
-        (3 m, 3) float64 vertices and (m, 3) faces for m triangles, with a
-        ``COLOR_0`` vertex attribute (uint8 RGBA) and a matte PBR material.
+    mesh : trimesh.Trimesh
+        (n, 3) float64 shared vertices and (m, 3) faces, with one matte PBR material.
+    ranges : dict of str to [int, int]
+        First triangle and triangle count per semantic surface type, in file order.
     """
-    tri = solid.to_trimesh()
-    corners = tri.vertices[tri.faces.reshape(-1)] @ GLTF_FROM_LOCAL.T
-    faces = np.arange(len(corners), dtype=np.int64).reshape(-1, 3)
-    rgb = np.array([MATERIALS.get(k, (None, _GREY))[1] for k in solid.semantics] or [_GREY])
-    face_rgb = rgb[tri.metadata["surface_index"]]
-    rgba = np.column_stack([np.rint(face_rgb * 255), np.full(len(face_rgb), 255)]).astype(np.uint8)
+    vertices, faces, surface = solid.mesh()
+    order, ranges = surface_order(solid, surface)
     material = trimesh.visual.material.PBRMaterial(
-        name="building",
-        baseColorFactor=[255, 255, 255, 255],
-        metallicFactor=0.0,
-        roughnessFactor=1.0,
+        name="building", baseColorFactor=_COLOUR, metallicFactor=0.0, roughnessFactor=1.0
     )
-    mesh = trimesh.Trimesh(corners, faces, process=False)
+    mesh = trimesh.Trimesh(vertices @ GLTF_FROM_LOCAL.T, faces[order], process=False)
     mesh.visual = trimesh.visual.TextureVisuals(material=material)
-    mesh.visual.vertex_attributes["color"] = np.repeat(rgba, 3, axis=0)
-    return mesh
+    return mesh, ranges

@@ -1,8 +1,14 @@
 """Wavefront OBJ + MTL export of the buildings of a :class:`~recon3d.core.city.CityModel`.
 
-One object (``o <id>`` and ``g <id>``) per building, its highest-LoD solid
-triangulated, with a material per semantic surface type (roof, wall, ground) in an
-MTL file beside the OBJ. Coordinates stay in the model's local frame and in CRS
+One object (``o <id>`` and ``g <id>``) per building: its highest-LoD solid as the
+triangles of :meth:`~recon3d.core.city.Solid.mesh` (shared vertices, no
+T-junctions, so each building is a closed shell), with a material per semantic
+surface type (``usemtl roof``, ``wall``, ``ground``, defined in an MTL file beside
+the OBJ) inside the object. Blender imports one object per building; trimesh groups
+faces by material unless told ``trimesh.load(path, split_objects=True,
+group_material=False)``, which gives one mesh per building. A building whose
+surfaces close no volume (a MultiSurface read from another tool) has the comment
+:data:`SURFACES_COMMENT` after its ``g`` line. Coordinates stay in the model's local frame and in CRS
 units, Z up (OBJ has no georeferencing; the header comment gives the CRS and the
 origin: ``world = local + origin``). Six decimals keep well under a millimetre.
 """
@@ -15,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from recon3d.core.city import Building, CityModel, Solid
+from recon3d.core.city import SEMANTIC_TYPES, Building, CityModel, Solid
 from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MATERIALS", "highest_lod", "semantic_material", "write_obj"]
+__all__ = ["MATERIALS", "SURFACES_COMMENT", "highest_lod", "semantic_material", "surface_order", "write_obj"]
 
 #: Material name and diffuse RGB colour (0-1) per CityJSON semantic surface type.
 MATERIALS: dict[str, tuple[str, tuple[float, float, float]]] = {
@@ -31,6 +37,8 @@ MATERIALS: dict[str, tuple[str, tuple[float, float, float]]] = {
 }
 #: Material of any other surface type (ClosureSurface...).
 _DEFAULT_TYPE = "WallSurface"
+#: Comment line marking an object as surfaces, not a closed solid (``Solid.kind == "MultiSurface"``).
+SURFACES_COMMENT = "# MultiSurface: surfaces, not a closed solid"
 
 
 def highest_lod(building: Building) -> str | None:
@@ -41,6 +49,33 @@ def highest_lod(building: Building) -> str | None:
 def semantic_material(kind: str) -> str:
     """Material name ("roof", "wall", "ground") of a semantic surface type."""
     return MATERIALS.get(kind, MATERIALS[_DEFAULT_TYPE])[0]
+
+
+def surface_order(solid: Solid, surface: np.ndarray) -> tuple[np.ndarray, dict[str, list[int]]]:
+    """Triangles ordered by semantic type: ground, walls, roofs, then any other type.
+
+    Parameters
+    ----------
+    solid : Solid
+    surface : (m,) int
+        Surface of each triangle (``Solid.mesh().surface``).
+
+    Returns
+    -------
+    order : (m,) int64
+        Stable permutation of the triangles.
+    ranges : dict of str to [int, int]
+        First (in the new order) and count of the triangles of each type present.
+    """
+    kinds = np.array(solid.semantics, dtype=object)[surface] if len(surface) else np.zeros(0, object)
+    types = list(SEMANTIC_TYPES)  # ground, wall, roof
+    types += sorted(set(kinds.tolist()) - set(types))
+    rank = np.array([types.index(k) for k in kinds], dtype=np.int64)
+    order = np.argsort(rank, kind="stable")
+    count = np.bincount(rank, minlength=len(types))
+    first = np.r_[0, np.cumsum(count)[:-1]]
+    ranges = {t: [int(f), int(c)] for t, f, c in zip(types, first, count, strict=True) if c}
+    return order, ranges
 
 
 def write_obj(city: CityModel, path: str | Path) -> None:
@@ -89,13 +124,15 @@ def _obj_text(city: CityModel, mtl_name: str) -> str:
 
 def _write_building(out: io.StringIO, building: Building, solid: Solid, offset: int) -> int:
     """Append one building (vertices, then faces grouped by material); return its vertex count."""
-    mesh = solid.to_trimesh()
+    vertices, faces, surface = solid.mesh()
     name = "_".join(str(building.id).split()) or "building"
     out.write(f"o {name}\ng {name}\n")
-    np.savetxt(out, mesh.vertices, fmt="v %.6f %.6f %.6f")
-    per_surface = np.array([semantic_material(k) for k in solid.semantics] or [""])
-    materials = per_surface[mesh.metadata["surface_index"]]
-    for material in dict.fromkeys(materials.tolist()):
-        out.write(f"usemtl {material}\n")
-        np.savetxt(out, mesh.faces[materials == material] + offset, fmt="f %d %d %d")
-    return len(mesh.vertices)
+    if solid.kind != "Solid":
+        out.write(SURFACES_COMMENT + "\n")
+    np.savetxt(out, vertices, fmt="v %.6f %.6f %.6f")
+    order, ranges = surface_order(solid, surface)
+    faces = faces[order] + offset
+    for kind, (first, count) in ranges.items():
+        out.write(f"usemtl {semantic_material(kind)}\n")
+        np.savetxt(out, faces[first : first + count], fmt="f %d %d %d")
+    return len(vertices)

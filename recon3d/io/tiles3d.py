@@ -52,8 +52,8 @@ from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import crs_name, crs_units
 from recon3d.errors import CRSError
 from recon3d.io.cityjson import building_attributes
-from recon3d.io.gltf import GLTF_FROM_LOCAL, _building_mesh
-from recon3d.io.obj import highest_lod
+from recon3d.io.gltf import GLTF_FROM_LOCAL
+from recon3d.io.obj import MATERIALS, highest_lod
 
 log = logging.getLogger(__name__)
 
@@ -229,14 +229,16 @@ class _Item:
 def _world_corners(city: CityModel, building: Building, lod: str) -> tuple[np.ndarray, np.ndarray]:
     """(3 m, 3) world corners of the building's triangles and their (3 m, 4) uint8 colours.
 
-    The triangles and colours are those of :mod:`recon3d.io.gltf` (y-up, local frame),
-    turned back z-up into the world CRS.
+    The triangles are the solid's closed mesh (:meth:`~recon3d.core.city.Solid.mesh`),
+    one vertex per corner so each surface type keeps its colour (:data:`MATERIALS`).
     """
-    mesh = _building_mesh(building.solids[lod])
-    corner = np.asarray(mesh.faces, dtype=np.int64).reshape(-1)
-    rgba = np.asarray(mesh.visual.vertex_attributes["color"], dtype=np.uint8)[corner]
-    local = np.asarray(mesh.vertices, dtype=np.float64)[corner] @ GLTF_FROM_LOCAL  # p = R.T @ p_gltf
-    return city.frame.to_world(local), rgba
+    solid = building.solids[lod]
+    vertices, faces, surface = solid.mesh()
+    grey = (0.7, 0.7, 0.7)
+    rgb = np.array([MATERIALS.get(k, (None, grey))[1] for k in solid.semantics] or [grey])[surface]
+    rgba = np.column_stack([np.rint(rgb * 255), np.full(len(rgb), 255)]).astype(np.uint8)
+    local = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1)]
+    return city.frame.to_world(local), np.repeat(rgba, 3, axis=0)
 
 
 def _properties(building: Building, lod: str) -> dict:

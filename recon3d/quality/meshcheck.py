@@ -27,6 +27,11 @@ Vertices closer than ``snap`` are merged first (as val3dity does), and the shell
 topology is checked on the polygon rings, not on a triangulation, so a surface
 split into triangles elsewhere would show up as 302. As in val3dity, 303 and 405 are
 only tested on a shell that is closed, edge-manifold and consistently oriented.
+
+The triangle meshes of the exports (GLB, OBJ) are checked as other tools load them
+(:func:`check_mesh_file`): each building's mesh, read by trimesh without merging
+anything, must be watertight, consistently wound, enclose a positive volume
+(outward normals) and be accepted by manifold3d (status ``NoError``).
 """
 
 from __future__ import annotations
@@ -37,13 +42,24 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
-from recon3d.core.city import CityModel, Solid, newell_normal
+from recon3d.core.city import CityModel, Solid
+from recon3d.core.mesh import newell_normal, snap_vertices
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ISSUE_NAMES", "MeshIssue", "check_city", "check_solid"]
+__all__ = [
+    "ISSUE_NAMES",
+    "MeshCheck",
+    "MeshIssue",
+    "building_meshes",
+    "check_city",
+    "check_mesh",
+    "check_mesh_file",
+    "check_solid",
+    "manifold_status",
+    "snap_vertices",
+]
 
 #: Error code -> name, as in val3dity / the CityGML QIE.
 ISSUE_NAMES: dict[int, str] = {
@@ -149,28 +165,6 @@ def check_city(
     n_bad = sum(bool(v) for lods in report.values() for v in lods.values())
     log.info("mesh check: %d of %d solids have issues", n_bad, sum(map(len, report.values())))
     return report
-
-
-def snap_vertices(vertices: np.ndarray, snap: float) -> np.ndarray:
-    """Canonical vertex id per vertex, merging vertices closer than ``snap``.
-
-    Parameters
-    ----------
-    vertices : (n, 3) float
-    snap : float
-
-    Returns
-    -------
-    (n,) int64
-        Equal ids for vertices in one cluster (single linkage within ``snap``).
-    """
-    n = len(vertices)
-    if n == 0:
-        return np.zeros(0, np.int64)
-    pairs = cKDTree(vertices).query_pairs(snap, output_type="ndarray")
-    graph = scipy.sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    return labels.astype(np.int64)
 
 
 def _surface_rings(
@@ -320,3 +314,147 @@ def _few(values: np.ndarray, limit: int = 6) -> str:
     """Comma-separated first ``limit`` values, with an ellipsis when there are more."""
     text = ", ".join(str(int(v)) for v in values[:limit])
     return text + (", ..." if len(values) > limit else "")
+
+
+# --------------------------------------------------------------------------- meshes of the exports
+
+
+@dataclass(frozen=True)
+class MeshCheck:
+    """trimesh's and manifold3d's verdict on the mesh of one building in a GLB or OBJ file.
+
+    Attributes
+    ----------
+    id : str
+        Building id (GLB node extras) or OBJ object name.
+    kind : str
+        "Solid", or "MultiSurface" for surfaces that close no volume (not checked).
+    triangles : int
+    watertight : bool
+        trimesh: every edge shared by exactly two triangles.
+    winding : bool
+        trimesh: every shared edge traversed once in each direction.
+    volume : float
+        Signed volume (positive: normals point outward).
+    manifold : str
+        Status of ``manifold3d.Manifold`` built from the vertices and triangles.
+    """
+
+    id: str
+    kind: str
+    triangles: int
+    watertight: bool
+    winding: bool
+    volume: float
+    manifold: str
+
+    @property
+    def ok(self) -> bool:
+        """True for a closed, outward, manifold shell; MultiSurface meshes always pass."""
+        return self.kind != "Solid" or not self.problems()
+
+    def problems(self) -> list[str]:
+        """What is wrong with a solid's mesh, in words (empty when it passes)."""
+        found = [] if self.watertight else ["not watertight"]
+        found += [] if self.winding else ["winding not consistent"]
+        found += [] if self.volume > 0 else [f"volume {self.volume:.4g} <= 0 (inside out)"]
+        found += [] if self.manifold == "NoError" else [f"manifold3d {self.manifold}"]
+        return found
+
+
+def manifold_status(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """Name of manifold3d's status for a mesh: "NoError" when it is a manifold solid.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    faces : (m, 3) int
+    """
+    import manifold3d
+
+    mesh = manifold3d.Mesh(
+        vert_properties=np.ascontiguousarray(vertices, dtype=np.float32),
+        tri_verts=np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1, 3),
+    )
+    return manifold3d.Manifold(mesh).status().name
+
+
+def check_mesh(mesh, building_id: str, kind: str = "Solid") -> MeshCheck:
+    """Check one building's :class:`trimesh.Trimesh` as loaded, vertices not merged."""
+    faces = np.asarray(mesh.faces)
+    return MeshCheck(
+        id=str(building_id),
+        kind=kind,
+        triangles=len(faces),
+        watertight=bool(mesh.is_watertight),
+        winding=bool(mesh.is_winding_consistent),
+        volume=float(mesh.volume) if len(faces) else 0.0,
+        manifold=manifold_status(mesh.vertices, faces) if len(faces) else "Empty",
+    )
+
+
+def building_meshes(path) -> list[tuple[str, str, object]]:
+    """The building meshes of a GLB or OBJ export, loaded by trimesh as they are stored.
+
+    A GLB gives one mesh per node (``extras["id"]``, ``extras["geometry_type"]``); an
+    OBJ one mesh per object (``trimesh.load(path, split_objects=True,
+    group_material=False, process=False)``), MultiSurface objects marked by
+    :data:`recon3d.io.obj.SURFACES_COMMENT`.
+
+    Returns
+    -------
+    list of (id, kind, trimesh.Trimesh)
+        In file order.
+    """
+    import trimesh
+
+    from recon3d.errors import InputError
+    from recon3d.io import require_file
+
+    path = require_file(path, "mesh")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".glb", ".gltf"):
+            return _glb_meshes(trimesh.load(path, force="scene"))
+        if suffix == ".obj":
+            scene = trimesh.load(path, force="scene", split_objects=True, group_material=False, process=False)
+            return _obj_meshes(scene, path.read_text(encoding="utf-8", errors="replace"))
+    except (ValueError, KeyError, IndexError, OSError) as exc:
+        raise InputError(f"{path}: cannot read the meshes ({exc})") from exc
+    raise InputError(f"{path}: not a GLB or OBJ file")
+
+
+def _glb_meshes(scene) -> list[tuple[str, str, object]]:
+    """(id, kind, mesh) per geometry of a loaded GLB scene, in its node's frame."""
+    out = []
+    for name, mesh in scene.geometry.items():
+        nodes = scene.graph.geometry_nodes.get(name, [])
+        if nodes:
+            transform, _ = scene.graph[nodes[0]]
+            if not np.allclose(transform, np.eye(4)):
+                mesh = mesh.copy()
+                mesh.apply_transform(transform)
+        meta = mesh.metadata
+        out.append((str(meta.get("id", name)), str(meta.get("geometry_type", "Solid")), mesh))
+    return out
+
+
+def _obj_meshes(scene, text: str) -> list[tuple[str, str, object]]:
+    """(id, kind, mesh) per object of a loaded OBJ, in file order."""
+    from recon3d.io.obj import SURFACES_COMMENT
+
+    order, surfaces, current = [], set(), None
+    for line in text.splitlines():
+        if line.startswith("o "):
+            current = line[2:].strip()
+            order.append(current)
+        elif line.strip() == SURFACES_COMMENT and current is not None:
+            surfaces.add(current)
+    rank = {name: i for i, name in enumerate(order)}
+    items = sorted(scene.geometry.items(), key=lambda kv: rank.get(kv[0], len(rank)))
+    return [(name, "MultiSurface" if name in surfaces else "Solid", mesh) for name, mesh in items]
+
+
+def check_mesh_file(path) -> list[MeshCheck]:
+    """:func:`check_mesh` for every building mesh of a GLB or OBJ file, in file order."""
+    return [check_mesh(mesh, bid, kind) for bid, kind, mesh in building_meshes(path)]

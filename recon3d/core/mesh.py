@@ -1,0 +1,358 @@
+"""Polygon solids to welded triangle meshes without T-junctions.
+
+Every product that needs triangles takes them from :func:`solid_mesh` (through
+:meth:`recon3d.core.city.Solid.to_trimesh`): the OBJ and GLB exports, the model DSM,
+volumes and the mesh checks. Mesh tools (trimesh, manifold3d, Blender) see a closed
+shell only when
+
+- triangles share vertices (one vertex per position, not per triangle corner);
+- no vertex lies inside another triangle's edge (a T-junction): a polygon edge
+  that a neighbour splits at one of its vertices is split there too, before the
+  polygon is triangulated;
+- every ring vertex is used: earcut drops collinear ring vertices when it joins a
+  hole to the outer ring, which leaves a T-junction even in an edge-matched solid,
+  so triangles whose edge runs over a ring vertex are split there;
+- a polygon's triangles all keep the orientation of its outer ring (one decision
+  per polygon, so sliver triangles cannot be flipped alone).
+
+The polygons' own geometry is kept: vertices closer than ``tol`` are merged (the
+first one's position is kept), T-junction vertices are only inserted in rings,
+never moved, so the mesh encloses the volume of the polygons.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import mapbox_earcut
+import numpy as np
+import scipy.sparse
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "WELD_TOLERANCE",
+    "SolidMesh",
+    "newell_normal",
+    "points_on_segments",
+    "snap_vertices",
+    "solid_mesh",
+    "split_ring_edges",
+    "triangulate_surface",
+]
+
+#: Vertices closer than this (CRS units) are one vertex, and a vertex closer than
+#: this to a polygon edge splits it: val3dity's snap tolerance, and the 1 mm that
+#: CityJSON's quantisation keeps.
+WELD_TOLERANCE = 1e-3
+
+#: Up to this many (segment, point) pairs, :func:`points_on_segments` measures every pair.
+_ALL_PAIRS = 1 << 14
+
+
+class SolidMesh(NamedTuple):
+    """Triangles of a solid, on welded vertices.
+
+    Attributes
+    ----------
+    vertices : (n, 3) float64
+        The distinct vertices the triangles use, in the order of their first index in
+        the solid.
+    faces : (m, 3) int64
+        Triangles, counter-clockwise seen from outside, grouped by surface in the
+        order of the solid's surfaces.
+    surface : (m,) int64
+        Index of each triangle's surface in ``Solid.surfaces``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    surface: np.ndarray
+
+
+def newell_normal(points: np.ndarray) -> np.ndarray:
+    """Unnormalised normal of a (k, 3) polygon ring by Newell's method (robust to collinear runs).
+
+    Its length is twice the ring's area.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    q = np.concatenate([p[1:], p[:1]])
+    return np.einsum("ij,ij->j", (p - q)[:, [1, 2, 0]], (p + q)[:, [2, 0, 1]])
+
+
+def snap_vertices(vertices: np.ndarray, snap: float) -> np.ndarray:
+    """Canonical vertex id per vertex, merging vertices closer than ``snap``.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    snap : float
+
+    Returns
+    -------
+    (n,) int64
+        Equal ids for vertices in one cluster (single linkage within ``snap``);
+        clusters are numbered in the order of their first vertex.
+    """
+    n = len(vertices)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    pairs = cKDTree(vertices).query_pairs(snap, output_type="ndarray")
+    graph = scipy.sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(np.int64)
+
+
+def points_on_segments(
+    points: np.ndarray, start: np.ndarray, end: np.ndarray, tol: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points lying inside segments (T-junctions).
+
+    Parameters
+    ----------
+    points : (k, d) float
+        Candidate points, d = 2 or 3.
+    start, end : (e, d) float
+        Segment ends.
+    tol : float
+        Largest distance of a point to the segment; a point within ``tol`` of either
+        end is at that end, not inside.
+
+    Returns
+    -------
+    segment : (h,) int64
+        Segment of each hit, ascending.
+    point : (h,) int64
+        Point of each hit.
+    t : (h,) float64
+        Position of the point along its segment, in (0, 1); hits of one segment are
+        sorted by it.
+    """
+    points, start, end = (np.asarray(a, dtype=np.float64) for a in (points, start, end))
+    if not len(points) or not len(start):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    seg, pt = _near_pairs(points, start, end, tol)
+    d = end[seg] - start[seg]
+    rel = points[pt] - start[seg]
+    length2 = np.einsum("ij,ij->i", d, d)
+    t = np.einsum("ij,ij->i", rel, d) / np.maximum(length2, 1e-300)
+    off = rel - t[:, None] * d
+    length = np.sqrt(length2)
+    hit = (np.einsum("ij,ij->i", off, off) <= tol * tol) & (t * length > tol) & ((1.0 - t) * length > tol)
+    order = np.lexsort((t[hit], seg[hit]))
+    return seg[hit][order], pt[hit][order], t[hit][order]
+
+
+def _near_pairs(points: np.ndarray, start: np.ndarray, end: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(segment, point) pairs, (h,) int64 each: the points in each segment's ball grown by ``tol``."""
+    if len(points) * len(start) <= _ALL_PAIRS:
+        seg, pt = np.indices((len(start), len(points))).reshape(2, -1)
+        return seg, pt
+    tree = cKDTree(points)
+    centre, radius = (start + end) / 2, np.linalg.norm(end - start, axis=1) / 2 + tol
+    count = tree.query_ball_point(centre, radius, return_length=True)
+    found = tree.query_ball_point(centre, radius, return_sorted=True)
+    pt = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(count.sum()))
+    return np.repeat(np.arange(len(start)), count), pt
+
+
+def split_ring_edges(vertices: np.ndarray, rings: list[np.ndarray], tol: float) -> list[np.ndarray]:
+    """Rings with every vertex that lies inside one of their edges inserted there.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+        Welded vertices: every one of them that lies within ``tol`` of the inside of
+        a ring edge splits it.
+    rings : list of (k,) int arrays
+        Rings of vertex indices, not closed.
+    tol : float
+
+    Returns
+    -------
+    list of (k',) int64 arrays
+        The same rings, k' >= k, the inserted vertices in order along each edge.
+    """
+    if not rings:
+        return []
+    flat = np.concatenate(rings).astype(np.int64)
+    sizes = np.array([len(r) for r in rings])
+    ends = np.cumsum(sizes)
+    nxt = np.arange(1, len(flat) + 1)
+    nxt[ends - 1] = ends - sizes  # a ring's last edge closes on its first vertex
+    segment, point, t = points_on_segments(vertices, vertices[flat], vertices[flat[nxt]], tol)
+    if not len(segment):
+        return [np.asarray(r, np.int64) for r in rings]
+    # each edge's start vertex (t = -1), then the vertices inside it, in order
+    edge = np.r_[np.arange(len(flat)), segment]
+    order = np.lexsort((np.r_[np.full(len(flat), -1.0), t], edge))
+    merged = np.r_[flat, point][order]
+    added = np.bincount(np.searchsorted(ends, segment, side="right"), minlength=len(rings))
+    return np.split(merged, np.cumsum(sizes + added)[:-1])
+
+
+def triangulate_surface(vertices: np.ndarray, rings: list[np.ndarray]) -> np.ndarray:
+    """Triangles (m, 3) of vertex indices covering one planar surface with holes.
+
+    The surface is triangulated by earcut in the plane of its largest projection
+    (earcut is named explicitly so every machine produces the same triangles). All
+    triangles take the orientation of the outer ring. Collinear ring vertices are
+    where earcut goes wrong: it drops some (when it joins a hole to the outer ring)
+    and folds flat triangles over others; the flat triangles are removed and every
+    ring vertex inside a triangle edge splits it, so the triangles' boundary is made
+    of the rings' own edges.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    rings : list of (k,) int arrays
+        Outer ring, then holes.
+
+    Returns
+    -------
+    (m, 3) int64
+        Indices into ``vertices``; empty for a ring without area.
+    """
+    normal = newell_normal(vertices[rings[0]])
+    if not np.any(normal):
+        return np.zeros((0, 3), np.int64)
+    drop = int(np.argmax(np.abs(normal)))
+    index = np.concatenate(rings).astype(np.int64)
+    xy = vertices[index][:, [a for a in range(3) if a != drop]]
+    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
+    tri = mapbox_earcut.triangulate_float64(xy, ends).reshape(-1, 3).astype(np.int64)
+    if not len(tri):
+        return np.zeros((0, 3), np.int64)
+    outer = normal[drop] * (-1.0 if drop == 1 else 1.0)  # twice the outer ring's area in (x, y), (y, z) or (x, z)
+    if np.sign(_area2(xy[tri]).sum()) != np.sign(outer):
+        tri = tri[:, ::-1]
+    tol = 1e-9 * max(float(np.ptp(xy, axis=0).max()), 1.0)
+    flat = _flat(xy[tri], tol)
+    used = np.zeros(len(index), bool)
+    used[tri] = True
+    if not flat.any() and used.all():
+        return index[tri]  # every ring vertex used, no fold: nothing lies inside an edge
+    unique, first, inverse = np.unique(index, return_index=True, return_inverse=True)
+    tri, xy = inverse[tri], xy[first]  # a vertex twice in the rings (rings touching) is one point
+    return unique[_split_on_edges(xy, tri[~_flat(xy[tri], tol)], tol)]
+
+
+def _flat(triangles: np.ndarray, tol: float) -> np.ndarray:
+    """(m,) True for (m, 3, 2) triangles whose height is at most ``tol`` (a corner on the opposite edge).
+
+    earcut leaves such triangles over collinear ring vertices; dropping them and
+    splitting the neighbour's edge at the vertex gives the same cover, without a fold.
+    """
+    side = triangles[:, [1, 2, 0]] - triangles
+    longest = np.sqrt(np.einsum("tij,tij->ti", side, side).max(axis=1))
+    return np.abs(_area2(triangles)) <= tol * longest
+
+
+def _area2(triangles: np.ndarray) -> np.ndarray:
+    """(m,) twice the signed areas (counter-clockwise positive) of (m, 3, 2) triangles."""
+    u, v = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+
+def _split_on_edges(points: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
+    """Triangles split wherever one of ``points`` lies inside one of their edges.
+
+    A triangle (u, v, w) with points p1..pc inside its edge u -> v becomes the fan
+    (u, p1, w), (p1, p2, w), ..., (pc, v, w), in the same orientation; a triangle
+    with points on several edges is split edge by edge over the rounds.
+
+    Parameters
+    ----------
+    points : (k, d) float
+    tri : (m, 3) int64
+        Indices into ``points``.
+    tol : float
+
+    Returns
+    -------
+    (m', 3) int64
+        Each triangle's pieces where it stood.
+    """
+    for _ in range(len(points)):  # each round uses up at least one (point, edge) pair
+        # (3 m, 3): row 3 i + k is edge k of triangle i as (u, v, apex)
+        edges = np.stack([tri, tri[:, [1, 2, 0]], tri[:, [2, 0, 1]]], axis=2).reshape(-1, 3)
+        segment, point, _ = points_on_segments(points, points[edges[:, 0]], points[edges[:, 1]], tol)
+        if not len(segment):
+            return tri
+        owner = segment // 3
+        first = np.r_[True, owner[1:] != owner[:-1]]
+        chosen = segment[first][np.cumsum(first) - 1]  # each triangle's first edge with points
+        keep = segment == chosen
+        tri = _fan(tri, edges, segment[keep], point[keep])
+    return tri
+
+
+def _fan(tri: np.ndarray, edges: np.ndarray, segment: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """Replace each triangle owning a ``segment`` by its fan over the points of that edge.
+
+    ``segment`` (h,) is sorted, one edge per triangle, its points in order along it.
+    """
+    edge, count = np.unique(segment, return_counts=True)
+    u, v, apex = edges[edge].T
+    start = np.r_[0, np.cumsum(count + 2)[:-1]]
+    chain = np.empty(int((count + 2).sum()), np.int64)  # u, p1..pc, v per split triangle
+    chain[start] = u
+    chain[start + count + 1] = v
+    rank = np.arange(len(segment)) - np.repeat(np.r_[0, np.cumsum(count)[:-1]], count)
+    chain[np.repeat(start, count) + 1 + rank] = point
+    last = np.zeros(len(chain), bool)
+    last[start + count + 1] = True
+    pieces = np.column_stack([chain[:-1], chain[1:], np.repeat(apex, count + 2)[:-1]])[~last[:-1]]
+    source = np.r_[np.setdiff1d(np.arange(len(tri)), edge // 3), np.repeat(edge // 3, count + 1)]
+    faces = np.concatenate([np.delete(tri, edge // 3, axis=0), pieces])
+    return faces[np.argsort(source, kind="stable")]
+
+
+def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: float = WELD_TOLERANCE) -> SolidMesh:
+    """Welded, T-junction-free triangles of a polygon solid.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    surfaces : list of list of (k,) int arrays
+        Outer ring then holes per surface, outer rings counter-clockwise from outside.
+    tol : float
+        Vertices closer than this merge; a vertex closer than this to the inside of
+        a ring edge splits it (CRS units).
+
+    Returns
+    -------
+    SolidMesh
+    """
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    label = snap_vertices(vertices, tol)
+    kept = [_welded_rings(label, surface) for surface in surfaces]
+    flat = [r for rings in kept for r in rings]
+    used = np.unique(np.concatenate(flat)) if flat else np.zeros(0, np.int64)
+    points = vertices[np.unique(label, return_index=True)[1][used]]
+    compact = np.zeros(len(vertices), np.int64)
+    compact[used] = np.arange(len(used))
+    split = iter(split_ring_edges(points, [compact[r] for r in flat], tol))
+    none = np.zeros((0, 3), np.int64)
+    tris = [triangulate_surface(points, [next(split) for _ in rings]) if rings else none for rings in kept]
+    faces = np.concatenate(tris) if tris else none
+    surface = np.repeat(np.arange(len(tris), dtype=np.int64), [len(t) for t in tris])
+    return SolidMesh(points, faces.astype(np.int64), surface)
+
+
+def _welded_rings(label: np.ndarray, surface: list[np.ndarray]) -> list[np.ndarray]:
+    """A surface's rings as (k,) welded vertex ids, repeats removed; no ring without an outer one.
+
+    Rings left with fewer than 3 vertices are dropped; a surface whose outer ring is
+    dropped has none.
+    """
+    rings = []
+    for ring in surface:
+        ids = label[np.asarray(ring, np.int64)]
+        ids = ids[ids != np.roll(ids, 1)]
+        if len(ids) >= 3:
+            rings.append(ids)
+        elif not rings:
+            return []
+    return rings
