@@ -1,4 +1,9 @@
-"""The ``recon3d`` command line. Each subcommand is a thin wrapper over one library call."""
+"""The ``recon3d`` command line. Each subcommand is a thin wrapper over one library call.
+
+Only click is imported at start-up: every subcommand imports the stages it runs, so
+``recon3d --help`` and ``--version`` start fast (``tests/test_startup.py`` checks that
+no heavy library is loaded).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,6 @@ import sys
 from pathlib import Path
 
 import click
-import numpy as np
 
 from recon3d import __version__
 from recon3d.errors import Recon3dError
@@ -143,6 +147,7 @@ def disparity(left, right, out_path, min_disparity, max_disparity, overwrite):
       recon3d disparity left.png right.png -o disp.tif --max-disparity 64
     """
     import cv2
+    import numpy as np
     from affine import Affine
 
     from recon3d.core.raster import Raster

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import mapbox_earcut
 import numpy as np
 import pyproj
 import shapely
-import trimesh
 
 from recon3d.core.geo import LocalFrame
+
+if TYPE_CHECKING:  # trimesh (and scipy with it) is imported by to_trimesh, when a mesh is wanted
+    import trimesh
 
 __all__ = ["SEMANTIC_TYPES", "Building", "CityModel", "Solid"]
 
@@ -59,6 +61,8 @@ class Solid:
         not changed once built, so the triangles are computed once (the model DSM,
         the OBJ and the GLB all ask for them).
         """
+        import trimesh
+
         if self._triangles is None:
             tris = [triangulate_surface(self.vertices, rings) for rings in self.surfaces]
             faces = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
