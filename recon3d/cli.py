@@ -1,4 +1,9 @@
-"""The ``recon3d`` command line. Each subcommand is a thin wrapper over one library call."""
+"""The ``recon3d`` command line. Each subcommand is a thin wrapper over one library call.
+
+Only click is imported at start-up: every subcommand imports the stages it runs, so
+``recon3d --help`` and ``--version`` start fast (``tests/test_startup.py`` checks that
+no heavy library is loaded).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,6 @@ import sys
 from pathlib import Path
 
 import click
-import numpy as np
 
 from recon3d import __version__
 from recon3d.errors import Recon3dError
@@ -24,8 +28,36 @@ def _configure_logging(verbose: int, quiet: int) -> None:
     root.setLevel(level)
 
 
+def _count_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> None:
+    """``-v`` / ``-q`` before or after the subcommand: the counts add up, logging follows them."""
+    obj = ctx.ensure_object(dict)
+    obj[param.name] = obj.get(param.name, 0) + value
+    _configure_logging(obj.get("verbose", 0), obj.get("quiet", 0))
+
+
+def _verbosity_params(where: str) -> list[click.Option]:
+    """The ``-v`` and ``-q`` options, counted by :func:`_count_verbosity`; ``where`` ends their help."""
+    return [
+        click.Option(["-v", "--verbose"], count=True, expose_value=False, callback=_count_verbosity,
+                     help=f"More messages (-vv for debug){where}."),
+        click.Option(["-q", "--quiet"], count=True, expose_value=False, callback=_count_verbosity,
+                     help=f"Fewer messages: errors only, no progress bar{where}."),
+    ]
+
+
+class _Command(click.Command):
+    """A subcommand taking ``-v`` / ``-q`` too, so ``recon3d run ... -v`` works like ``recon3d -v run ...``."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.params.extend(_verbosity_params(""))
+
+
 class _Group(click.Group):
     """Turns every recon3d error into one line on stderr and exit status 1."""
+
+    command_class = _Command
+    group_class = type  # subgroups (evaluate) are _Groups too
 
     def invoke(self, ctx):
         try:
@@ -35,15 +67,13 @@ class _Group(click.Group):
             sys.exit(1)
 
 
-@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_Group, params=_verbosity_params("; also accepted after the subcommand"),
+             context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="recon3d")
-@click.option("-v", "--verbose", count=True, help="More messages (-vv for debug).")
-@click.option("-q", "--quiet", count=True, help="Fewer messages: errors only, no progress bar.")
 @click.pass_context
-def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
+def cli(ctx: click.Context) -> None:
     """recon3d: DSM, DTM and 3D city models from point clouds and stereo imagery, with accuracy reports."""
-    _configure_logging(verbose, quiet)
-    ctx.obj = {"quiet": quiet > 0}
+    ctx.ensure_object(dict)
 
 
 def _memory_cap(ctx, param, value):
@@ -95,8 +125,10 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
     georef.json {"crs": "EPSG:N", "offset": [x0, y0, z0]} (world = model + offset).
 
     OUT receives dsm.tif, dtm.tif, ndsm.tif, model_dsm.tif, cloud.laz,
-    buildings.city.json, buildings.obj, buildings.glb, buildings_3dtiles/ (3D Tiles
-    1.1), footprints.geojson, footprints.gpkg, report.json and run.json. Parameters
+    buildings.city.json, buildings.obj (with its materials, buildings.mtl),
+    buildings.glb, buildings_3dtiles/ (3D Tiles 1.1), footprints.geojson,
+    footprints.gpkg, report.json, report.html and run.json; with --old-buildings
+    also changes.geojson, changes.tif and buildings_updated.city.json. Parameters
     left unset are chosen from the data and recorded, with the reason, in run.json.
 
     \b
@@ -115,7 +147,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
     config = PipelineConfig.from_toml(config_path) if config_path else PipelineConfig()
     config = _with_old_heights(config.with_overrides(list(overrides)), old_height_field, old_height_reference)
     user_crs = parse_crs(crs) if crs else None
-    with _StageProgress(enabled=not ctx.obj["quiet"]) as progress:
+    with _StageProgress(enabled=not ctx.obj.get("quiet")) as progress:
         state = run_pipeline(
             tuple(input_path),
             out_dir,
@@ -132,7 +164,7 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
             workers=workers,
             progress=progress,
         )
-    if not ctx.obj["quiet"]:
+    if not ctx.obj.get("quiet"):
         _print_summary(state)
 
 
@@ -153,6 +185,7 @@ def disparity(left, right, out_path, min_disparity, max_disparity, overwrite):
       recon3d disparity left.png right.png -o disp.tif --max-disparity 64
     """
     import cv2
+    import numpy as np
     from affine import Affine
 
     from recon3d.core.raster import Raster
@@ -198,14 +231,14 @@ def demo(ctx, out_dir, seed, overwrite):
         raise InputError(f"{out_dir}: exists and is not empty; use --overwrite to replace it")
     shutil.rmtree(out_dir, ignore_errors=True)
     scene_dir = out_dir / "scene"
-    with _StageProgress(enabled=not ctx.obj["quiet"]) as progress:
+    with _StageProgress(enabled=not ctx.obj.get("quiet")) as progress:
         progress("render", 0, 1)
         write_scene(scene_dir, seed=seed)
         state = run_pipeline(
             scene_dir, out_dir / "products", checkpoints=scene_dir / "truth" / "checkpoints.csv",
             truth_dsm=scene_dir / "truth" / "dsm.tif", progress=progress,
         )
-    if not ctx.obj["quiet"]:
+    if not ctx.obj.get("quiet"):
         _print_summary(state)
 
 
@@ -218,29 +251,46 @@ def report(out_dir):
     click.echo(f"wrote {write_report(out_dir)}")
 
 
+#: File name ending of each export format.
+_EXPORT_SUFFIX = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".gltf", "glb": ".glb",
+                  "3dtiles": "_3dtiles"}
+
+
+def _check_gltf_name(dest: Path, fmt: str) -> None:
+    """Refuse a .glb name for JSON glTF and a .gltf name for GLB: readers go by the ending."""
+    from recon3d.errors import InputError
+
+    ending = dest.suffix.lower()
+    if fmt in ("gltf", "glb") and ending in (".gltf", ".glb") and ending != _EXPORT_SUFFIX[fmt]:
+        kind = "JSON glTF" if fmt == "gltf" else "binary glTF"
+        raise InputError(f"{dest}: --format {fmt} writes {kind}, which is read as {_EXPORT_SUFFIX[fmt]}; "
+                         f"name the file {dest.stem}{_EXPORT_SUFFIX[fmt]} or use --format {ending[1:]}")
+
+
 @cli.command()
 @click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
 @click.option("--format", "fmt", required=True, type=click.Choice(["cityjson", "cityjsonseq", "obj", "gltf", "glb", "3dtiles"]), help="Target format (3dtiles: a folder, tileset.json and tiles/*.glb).")
-@click.option("-o", "--output", "dest", type=click.Path(path_type=Path), help="File to write (default: OUT/buildings.<ext>).")
+@click.option("-o", "--output", "dest", type=click.Path(path_type=Path), help="File to write (default: OUT/export/buildings.<ext>, so the run's own files stay as they are).")
 @click.option("--overwrite", is_flag=True, help="Replace the file if it exists.")
 def export(out_dir, fmt, dest, overwrite):
     """Convert the buildings of a run (OUT/buildings.city.json) to another format.
+
+    gltf writes one JSON .gltf file (buffer embedded), glb the binary form.
 
     \b
     Examples
     --------
       recon3d export out --format cityjsonseq
       recon3d export out --format glb -o city.glb
+      recon3d export out --format gltf -o city.gltf
       recon3d export out --format 3dtiles -o site/buildings_3dtiles
     """
+    from recon3d.errors import InputError
     from recon3d.io import cityjson, gltf, obj, tiles3d
 
-    suffix = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".glb", "glb": ".glb",
-              "3dtiles": "_3dtiles"}[fmt]
-    dest = dest or out_dir / f"buildings{suffix}"
+    dest = dest or out_dir / "export" / f"buildings{_EXPORT_SUFFIX[fmt]}"
+    _check_gltf_name(dest, fmt)
     _refuse_existing([dest, dest.with_suffix(".mtl")] if fmt == "obj" else [dest], overwrite)  # OBJ writes its .mtl
-    from recon3d.errors import InputError
-
     source = out_dir / "buildings.city.json"
     city = cityjson.read_cityjson(source, parts=True)  # every BuildingPart's solid, not the first one
     kinds = [s.kind for b in city for s in b.solids.values()]
@@ -250,7 +300,7 @@ def export(out_dir, fmt, dest, overwrite):
         raise InputError(f"{source}: no geometry to export ({len(city)} buildings"
                          + (f"; skipped: {skipped})" if skipped else ")"))
     writers = {"cityjson": cityjson.write_cityjson, "cityjsonseq": cityjson.write_cityjsonseq,
-               "obj": obj.write_obj, "gltf": gltf.write_glb, "glb": gltf.write_glb, "3dtiles": tiles3d.write_3dtiles}
+               "obj": obj.write_obj, "gltf": gltf.write_gltf, "glb": gltf.write_glb, "3dtiles": tiles3d.write_3dtiles}
     writers[fmt](city, dest)
     click.echo(f"wrote {dest} ({len(city)} buildings: {geometries})")
     if skipped:
@@ -392,9 +442,8 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
     --------
       recon3d evaluate ground out/cloud.laz --reference delft.laz --crs EPSG:7415
     """
-    import json
-
     from recon3d.core.geo import crs_units, parse_crs
+    from recon3d.errors import InputError
     from recon3d.io.checkpoints import read_checkpoints
     from recon3d.io.geotiff import read_raster
     from recon3d.io.las import read_las
@@ -404,19 +453,21 @@ def evaluate_ground(cloud_path, reference, crs, dtm_path, checkpoints, json_path
     user_crs = parse_crs(crs) if crs else None
     ref = read_las(reference, crs=user_crs)
     classified = read_las(cloud_path, crs=user_crs or ref.crs)
+    _require_overlap(reference, _cloud_box(ref), f"the classified cloud {cloud_path}", _cloud_box(classified))
     dtm_path = dtm_path or (cloud_path.parent / "dtm.tif" if (cloud_path.parent / "dtm.tif").exists() else None)
     dtm = read_raster(dtm_path) if dtm_path else None
+    if dtm is not None:
+        _require_overlap(reference, _cloud_box(ref), f"the DTM {dtm_path}", dtm.bounds)
     points = read_checkpoints(checkpoints) if checkpoints else None
     result = run_evaluation(classified, ref, crs_units(ref.crs, source=str(reference)), dtm=dtm, checkpoints=points)
     p = result["points"]
+    if not p["n"]:
+        raise InputError(f"{reference}: no point classified ground (2) or vegetation / building (3-6) "
+                         "where the run has points: nothing to score")
     click.echo(f"points scored {p['n']}: Type I {p['type_i_percent']:.2f} %  Type II {p['type_ii_percent']:.2f} %  "
                f"total {p['total_percent']:.2f} %  kappa {p['kappa']:.4f}")
     _echo_accuracy(result["accuracy"])
-    if json_path:
-        from recon3d.io import atomic_path
-
-        with atomic_path(json_path) as tmp:
-            tmp.write_text(json.dumps(result, indent=2), encoding="utf-8")
+    _write_json_result(json_path, result)
 
 
 @evaluate.command("buildings")
@@ -436,39 +487,104 @@ def evaluate_buildings(out_dir, reference, crs, json_path, overwrite):
       recon3d evaluate buildings out --reference bduni_buildings.shp
       recon3d evaluate buildings out --reference delft.laz --crs EPSG:7415
     """
-    import json
-
-    import shapely
-
-    from recon3d.core.geo import crs_units, parse_crs
     from recon3d.io.cityjson import read_cityjson
-    from recon3d.io.las import read_las
 
     _refuse_existing([json_path] if json_path else [], overwrite)
-    from recon3d.io.vectors import read_footprints
-    from recon3d.quality import buildings as building_quality
-
     city = read_cityjson(out_dir / "buildings.city.json")
     detected = [b.footprint for b in city if b.status == "ok"]
-    out_crs = city.crs or (parse_crs(crs) if crs else None)
+    extent = _run_extent(out_dir, detected)
     if reference.suffix.lower() in (".las", ".laz"):
-        cloud = read_las(reference, crs=parse_crs(crs) if crs else None)
-        result = building_quality.evaluate_against_classes(detected, cloud, cloud.classification, units=crs_units(cloud.crs))
+        result = _buildings_against_cloud(reference, crs, detected, extent)
     else:
-        refs, _ = read_footprints(reference, crs=out_crs)
-        extent = shapely.box(*shapely.MultiPolygon(detected).bounds) if detected else None
-        data = out_dir / "dsm.tif"
-        if data.exists():
-            from recon3d.io.geotiff import read_raster
-
-            extent = shapely.box(*read_raster(data).bounds)
-        polys = [f.polygon for f in refs if extent is None or f.polygon.within(extent)]
-        result = building_quality.evaluate_footprints(detected, polys, units=crs_units(out_crs))
+        result = _buildings_against_footprints(reference, city.crs or _user_crs(crs), detected, extent)
     for key in sorted(result):
         value = result[key]
         if isinstance(value, float | int):
             click.echo(f"{key:<32} {value:.3f}" if isinstance(value, float) else f"{key:<32} {value}")
+    _write_json_result(json_path, result)
+
+
+def _user_crs(text: str | None):
+    """The ``--crs`` given, parsed, or None."""
+    from recon3d.core.geo import parse_crs
+
+    return parse_crs(text) if text else None
+
+
+def _run_extent(out_dir: Path, detected: list) -> tuple[float, float, float, float] | None:
+    """(x0, y0, x1, y1) of the run's data: its DSM's grid, else its buildings, else None."""
+    import shapely
+
+    data = out_dir / "dsm.tif"
+    if data.exists():
+        from recon3d.io.geotiff import read_raster
+
+        return read_raster(data).bounds
+    return shapely.MultiPolygon(detected).bounds if detected else None
+
+
+def _buildings_against_cloud(reference: Path, crs: str | None, detected: list, extent) -> dict:
+    """Scores of the detected footprints against a provider-classified cloud's building class."""
+    from recon3d.core.geo import crs_units
+    from recon3d.io.las import read_las
+    from recon3d.quality import buildings as building_quality
+
+    cloud = read_las(reference, crs=_user_crs(crs))
+    if extent is not None:
+        _require_overlap(reference, _cloud_box(cloud), "the run", extent)
+    return building_quality.evaluate_against_classes(detected, cloud, cloud.classification, units=crs_units(cloud.crs))
+
+
+def _buildings_against_footprints(reference: Path, crs, detected: list, extent) -> dict:
+    """Scores of the detected footprints against the reference footprints inside the run's extent."""
+    import shapely
+
+    from recon3d.core.geo import crs_units
+    from recon3d.errors import InputError
+    from recon3d.io.vectors import read_footprints
+    from recon3d.quality import buildings as building_quality
+
+    refs, _ = read_footprints(reference, crs=crs)
+    polys = [f.polygon for f in refs]
+    if extent is not None and polys:
+        _require_overlap(reference, shapely.MultiPolygon(polys).bounds, "the run", extent)
+        polys = [p for p in polys if p.within(shapely.box(*extent))]
+        if not polys:
+            raise InputError(f"{reference}: none of its {len(refs)} footprints lies wholly inside the run "
+                             f"({_box_text(extent)}): nothing to score")
+    return building_quality.evaluate_footprints(detected, polys, units=crs_units(crs))
+
+
+def _cloud_box(cloud) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) of a point cloud."""
+    (x0, y0, _), (x1, y1, _) = cloud.bounds
+    return float(x0), float(y0), float(x1), float(y1)
+
+
+def _box_text(box) -> str:
+    return "x {:.1f} to {:.1f}, y {:.1f} to {:.1f}".format(box[0], box[2], box[1], box[3])
+
+
+def _require_overlap(reference: Path, ref_box, what: str, box) -> None:
+    """Refuse a reference whose extent ``ref_box`` does not overlap ``box`` (``what``'s extent).
+
+    Raises
+    ------
+    InputError
+        Naming both extents: a reference elsewhere, or in another CRS, would score zeros.
+    """
+    from recon3d.errors import InputError
+
+    if not (ref_box[0] < box[2] and box[0] < ref_box[2] and ref_box[1] < box[3] and box[1] < ref_box[3]):
+        raise InputError(f"{reference}: the reference ({_box_text(ref_box)}) does not overlap {what} "
+                         f"({_box_text(box)}); is it the same area, in the same CRS?")
+
+
+def _write_json_result(json_path: Path | None, result: dict) -> None:
+    """``result`` as indented JSON at ``json_path`` (atomic), when one was given."""
     if json_path:
+        import json
+
         from recon3d.io import atomic_path
 
         with atomic_path(json_path) as tmp:
@@ -523,7 +639,7 @@ def _print_summary(state) -> None:
 def _echo_accuracy(rows: list[dict]) -> None:
     """The accuracy table (metres, percentages) on stdout."""
     if rows:
-        w = max(len(r["product"]) for r in rows) + 1
+        w = max(len("product"), *(len(r["product"]) for r in rows)) + 1  # the header fits too
         click.echo(f"{'product':<{w}}{'reference':<32}{'n':>8}{'mean':>8}{'std':>7}{'RMS':>7}{'max':>7}{'NMAD':>7}{'<=1m%':>7}{'<=2m%':>7}")
         for r in rows:
             if not r["n"]:

@@ -1,17 +1,20 @@
 """Benchmark of recon3d.quality.change.detect_changes on a synthetic town.
 
-Usage: python scripts/bench_change.py [n_buildings]
+Usage: python scripts/bench_change.py [n_buildings] [--quick]
 
 Builds n square-ish buildings on a 0.5 m nDSM, shifts the new outlines by 0.7 m,
 splits every 10th old building in two, removes every 15th new one (demolished)
-and adds new ones, then reports buildings compared per second.
+and adds new ones, then reports buildings compared per second. ``--quick``: 100
+buildings.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
+import _bench
 import numpy as np
 import shapely
 import shapely.affinity
@@ -55,8 +58,17 @@ def town(n: int, seed: int = 0):
     return old, CityModel(new, None), grid
 
 
+QUICK_BUILDINGS = 100
+
+
 def main() -> None:
-    n = int(sys.argv[1]) if len(sys.argv) > 1 else 5000
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("n", nargs="?", type=int, default=5000, help="buildings in the town (default: %(default)s)")
+    _bench.add_quick(parser)
+    args = parser.parse_args()
+    n = QUICK_BUILDINGS if args.quick else args.n
+    if n < 1:
+        _bench.refuse(f"{n} buildings: at least 1 is needed")
     old, city, ndsm = town(n)
     t = time.perf_counter()
     result = detect_changes(old, city, ndsm)
@@ -69,4 +81,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

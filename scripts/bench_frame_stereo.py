@@ -14,6 +14,7 @@ degrees when the base runs along the columns), and scores both against the truth
 ``--vectors`` also runs recon3d with the truth footprints (eave and ridge heights), the
 spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
 matching), to measure their gain; the footprints then also give the building outlines.
+``--quick``: ``nadir_pair`` alone at 320 px wide.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import _bench
 import cv2
 import numpy as np
 
@@ -132,7 +134,7 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
             observed &= ~state.dsm_unobserved
         score = score_stereo(folder, state.dsm, dtm=state.dtm, footprints=[b.footprint for b in state.city],
                              observed=observed, city=city)
-        score["seconds"] = round(time.perf_counter() - t, 1)
+        score["seconds"] = round(time.perf_counter() - t, 2)
         score["stereo_seconds"] = state.timings.get("stereo")
         score["warnings"] = state.warnings
         score["pairs"] = [{k: p.get(k) for k in ("pair", "matched_percent", "self_check")} for p in state.auto["stereo"]["pairs"]]
@@ -141,7 +143,7 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
     dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
     score = score_stereo(folder, dsm, city=city)
     score["ground_rms_dsm"] = _ground_on(dsm, truth)
-    score["seconds"] = round(seconds, 1)
+    score["seconds"] = round(seconds, 2)
     row["opencv"] = score
     return row
 
@@ -184,6 +186,22 @@ def print_table(rows: list[dict]) -> None:
             print(f"{r['scene']:<15}{n:<16}" + "".join(cells))
 
 
+#: The figures printed beside OpenCV's, with their ratio.
+RATIO_KEYS = [("coverage", "coverage %"), ("dsm_rms_tolerant", "DSM RMS (tolerant) m"),
+              ("dsm_within_1m", "DSM within 1 m %"), ("roof_rms", "roof RMS m"), ("seconds", "s (recon3d: whole run)")]
+
+#: ``--quick``: the survey and the image width.
+QUICK = ("nadir_pair", 320)
+
+
+def print_ratios(rows: list[dict]) -> None:
+    """recon3d beside plain OpenCV, scene by scene, with recon3d / OpenCV."""
+    for r in rows:
+        ours, theirs = r.get("recon3d", {}), r.get("opencv", {})
+        if "error" not in ours and "error" not in theirs:
+            _bench.print_ratios(r["scene"], "OpenCV", ours, theirs, RATIO_KEYS)
+
+
 def print_summary(rows: list[dict]) -> None:
     """Median over the surveys of every column, per pipeline."""
     for n in ("recon3d", "recon3d+vectors", "opencv"):
@@ -207,7 +225,13 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--set", dest="overrides", action="append", metavar="STAGE.KEY=VALUE",
                         help="a recon3d setting for every run, as on the command line (repeatable)")
+    _bench.add_quick(parser)
     args = parser.parse_args()
+    if args.quick:
+        args.only, args.width = [QUICK[0]], QUICK[1]
+    unknown = sorted(set(args.only or ()) - set(CONFIGURATIONS))
+    if unknown:
+        _bench.refuse(f"no survey named {', '.join(unknown)}; known: {', '.join(sorted(CONFIGURATIONS))}")
     specs = [CONFIGURATIONS[n] for n in args.only] if args.only else family(args.random)
     if args.width:
         specs = [s.with_width(args.width) for s in specs]
@@ -219,10 +243,11 @@ def main() -> None:
     print()
     print_table(rows)
     print_summary(rows)
+    print_ratios(rows)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str))
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

@@ -35,9 +35,11 @@ scores Type I alone: its total error is Type I over the ground points, Type II i
 kappa 0 by construction, so only its Type I and DTM RMS say anything.
 
 Files without a CRS get the one in ``DEFAULT_CRS`` (Delft AHN3: EPSG:7415).
-Needs the ``bench`` extra: ``pip install -e '.[bench]'``.
+Needs the ``bench`` extra: ``pip install -e '.[bench]'``. ``--quick`` scores one file
+(the IGN village, else the smallest), one timed run, no oracle grid, and without CSF
+when it is not installed (a note says so).
 
-    .venv/bin/python scripts/bench_ground.py [--json PATH] [--data DIR] [--repeat N] [--no-oracle]
+    .venv/bin/python scripts/bench_ground.py [--json PATH] [--data DIR] [--repeat N] [--no-oracle] [--quick]
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ import sys
 import time
 from pathlib import Path
 
+import _bench
 import numpy as np
 from scipy import ndimage
 
@@ -61,6 +64,7 @@ from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
 from recon3d.errors import CRSError, InputError
 from recon3d.io.las import read_las
+from recon3d.pipeline.run import HOLE_AREA
 from recon3d.quality.evaluate import ground_filter_errors
 from recon3d.terrain.dsm import choose_resolution, grid_points, make_dsm, point_spacing
 from recon3d.terrain.dtm import make_dtm
@@ -80,6 +84,12 @@ ORACLE_GRID = {
 
 #: Reference cells count when a provider ground point lies within this many cells.
 MASK_CELLS = 2.0
+
+#: The file ``--quick`` scores when the data folder has it (71k points, classes 2 and 6).
+QUICK_FILE = "ign_village_2154.laz"
+
+#: How to install the peer.
+CSF_INSTALL = "pip install -e '.[bench]'"
 
 #: CSF's parameters (``interations`` is the package's spelling).
 CSF_PARAMS = (
@@ -116,6 +126,15 @@ def run_recon3d(
     if method == "provider":  # the benchmark would only compare the classes with themselves
         raise SystemExit("GroundConfig() picked method 'provider': nothing to benchmark")
     return result, best
+
+
+def have_csf() -> bool:
+    """True when the ``cloth-simulation-filter`` package (module ``CSF``) imports."""
+    try:
+        import CSF  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def csf_defaults() -> dict:
@@ -198,12 +217,14 @@ class Reference:
 # -- driver -------------------------------------------------------------------------
 
 
-def bench_file(path: Path, repeat: int, oracle: bool) -> dict:
+def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True) -> dict:
     cloud, units = load(path)
     if cloud.classification is None or not np.any(cloud.classification == ASPRS.GROUND):
         raise InputError(f"{path}: no provider ground (class 2) to score against")
     res, _ = choose_resolution(point_spacing(cloud.xyz[:, :2]), units)
-    max_cells = int(units.area(DsmConfig().max_hole_area) / res**2)
+    hole_area = DsmConfig().max_hole_area
+    hole_area = HOLE_AREA["lidar"][0] if hole_area is None else hole_area  # unset: the pipeline's LiDAR default
+    max_cells = int(units.area(hole_area) / res**2)
     grid = make_dsm(cloud, res, max_hole_cells=max_cells)
     ref = Reference(cloud, grid, units)
     classes, counts = np.unique(cloud.classification, return_counts=True)
@@ -224,6 +245,8 @@ def bench_file(path: Path, repeat: int, oracle: bool) -> dict:
         "params": result.params
     }
 
+    if not csf:
+        return record
     lo = cloud.xyz.min(axis=0)
     xyz_m = (cloud.xyz - lo) * np.array([units.horizontal, units.horizontal, units.vertical])
     defaults = csf_defaults()
@@ -276,9 +299,27 @@ def print_record(rec: dict) -> None:
             f"{m['type_ii_percent']:11.2f}{m['kappa']:8.3f}{m['dtm_rms_m']:11.3f}"
             f"{m['points_per_second']:11.3g}  {desc}"
         )
+    if "csf" in rec["methods"]:
+        _bench.print_ratios(rec["file"], "CSF", rec["methods"]["recon3d"], rec["methods"]["csf"], RATIO_KEYS)
     if "ratios_recon3d_over_oracle" in rec:
         q = rec["ratios_recon3d_over_oracle"]
         print(f"  recon3d / oracle: total error {q['total_error']:.2f}, DTM RMS {q['dtm_rms']:.2f}")
+
+
+#: The figures printed beside CSF's, with their ratio.
+RATIO_KEYS = [("total_percent", "total error %"), ("type_i_percent", "type I %"), ("type_ii_percent", "type II %"),
+              ("dtm_rms_m", "DTM RMS m"), ("points_per_second", "points/s")]
+
+
+def data_files(folder: Path, quick: bool) -> list[Path]:
+    """The .las/.laz files to score: all of ``folder``, or one for ``--quick``."""
+    folder = _bench.require(folder, "data folder").resolve()
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".las", ".laz")) if folder.is_dir() else []
+    if not files:
+        _bench.refuse(f"no .las/.laz files in {folder}")
+    if quick:
+        files = [p for p in files if p.name == QUICK_FILE] or [min(files, key=lambda p: p.stat().st_size)]
+    return files
 
 
 def main() -> None:
@@ -293,16 +334,20 @@ def main() -> None:
         "--repeat", type=int, default=3, help="timed runs of recon3d and CSF default; best kept"
     )
     parser.add_argument("--no-oracle", action="store_true", help="skip the CSF parameter grid")
+    _bench.add_quick(parser)
     args = parser.parse_args()
+    if args.quick:
+        args.repeat, args.no_oracle = 1, True
 
-    files = sorted(p for p in args.data.resolve().iterdir() if p.suffix.lower() in (".las", ".laz"))
-    if not files:
-        raise SystemExit(f"no .las/.laz files in {args.data}")
+    files = data_files(args.data, args.quick)
+    csf = have_csf()
+    if not csf:
+        _bench.peer_missing("CSF", CSF_INSTALL, args.quick)
     t0 = time.perf_counter()
     records = []
     for path in files:
         t = time.perf_counter()
-        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle)
+        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle and csf, csf)
         rec["wall_seconds"] = time.perf_counter() - t
         print_record(rec)
         records.append(rec)
@@ -310,7 +355,7 @@ def main() -> None:
     print(f"\ntotal runtime {total:.1f} s")
     if args.json:
         out = {
-            "csf_defaults": csf_defaults(),
+            "csf_defaults": csf_defaults() if csf else None,
             "oracle_grid": ORACLE_GRID,
             "mask_cells": MASK_CELLS,
             "files": records,
@@ -326,4 +371,4 @@ def _jsonable(value):
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

@@ -10,10 +10,15 @@ Cases, each run in its own subprocess so that the peak RSS (resource.getrusage) 
   with three box "buildings" (70, 90, 110 px), searched over 128 disparities (0..128);
   the same accuracy figures against its exact ground truth (occluded pixels excluded).
 
+The raw OpenCV StereoSGBM is the peer: each recon3d engine is printed beside it with
+the ratio. ``--quick``: the cones case alone (450 x 375 px, three engines). A case that
+fails makes the benchmark exit 1.
+
 Usage::
 
     .venv/bin/python scripts/bench_match.py                 # everything
     .venv/bin/python scripts/bench_match.py --case cones --engine census
+    .venv/bin/python scripts/bench_match.py --quick [--data DIR]
 """
 
 from __future__ import annotations
@@ -27,25 +32,27 @@ import time
 import warnings
 from pathlib import Path
 
+import _bench
 import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-CONES = ROOT.parent / "shared" / "data" / "stereo" / "middlebury_cones"
+CONES = _bench.SHARED / "stereo" / "middlebury_cones"
+CONES_FILES = ("left.png", "right.png", "disp_left.tif", "occlusion.png")
 
 
-def load_cones():
+def load_cones(data: Path = CONES):
     import rasterio
 
-    left = cv2.imread(str(CONES / "left.png"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(CONES / "right.png"), cv2.IMREAD_GRAYSCALE)
+    left = cv2.imread(str(data / "left.png"), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(data / "right.png"), cv2.IMREAD_GRAYSCALE)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        with rasterio.open(CONES / "disp_left.tif") as src:
+        with rasterio.open(data / "disp_left.tif") as src:
             gt = src.read(1).astype(np.float32)
-    occlusion = cv2.imread(str(CONES / "occlusion.png"), cv2.IMREAD_GRAYSCALE)
+    occlusion = cv2.imread(str(data / "occlusion.png"), cv2.IMREAD_GRAYSCALE)
     if left is None or right is None or occlusion is None:
-        raise SystemExit(f"missing Middlebury cones data in {CONES}")
+        _bench.refuse(f"{data}: unreadable Middlebury cones images ({', '.join(CONES_FILES)})")
     mask = (gt > 0) & (occlusion == 255)  # white = non-occluded; gt 0 = unknown
     return left, right, gt, mask, (0, 64)
 
@@ -102,11 +109,11 @@ def raw_sgbm(left, right, dmin, dmax):
     return disp
 
 
-def run_case(case: str, engine: str, overrides: dict) -> dict:
+def run_case(case: str, engine: str, overrides: dict, data: Path = CONES) -> dict:
     sys.path.insert(0, str(ROOT))
     from recon3d.stereo.match import MatchParams, match
 
-    left, right, gt, mask, (dmin, dmax) = load_cones() if case == "cones" else synthetic_pair()
+    left, right, gt, mask, (dmin, dmax) = load_cones(data) if case == "cones" else synthetic_pair()
     h, w = left.shape
     t = time.perf_counter()
     if engine == "raw-sgbm":
@@ -137,7 +144,20 @@ def run_case(case: str, engine: str, overrides: dict) -> dict:
     return out
 
 
-def main() -> None:
+#: The figures printed beside raw OpenCV SGBM's, with their ratio.
+RATIO_KEYS = [("bad1_percent", "bad-1 %"), ("bad2_percent", "bad-2 %"), ("mae_px", "mean abs error px"),
+              ("density_percent", "density %"), ("seconds", "seconds"), ("peak_rss_mb", "peak RSS MB")]
+
+
+def print_ratios(rows: list[dict]) -> None:
+    """Each recon3d engine beside raw OpenCV SGBM on the same case."""
+    peer = {r["case"]: r for r in rows if r["engine"] == "raw-sgbm"}
+    for r in rows:
+        if r["engine"] != "raw-sgbm" and r["case"] in peer:
+            _bench.print_ratios(f"{r['case']}, recon3d {r['engine']}", "raw SGBM", r, peer[r["case"]], RATIO_KEYS)
+
+
+def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -146,25 +166,35 @@ def main() -> None:
     parser.add_argument(
         "--set", default="{}", help='MatchParams overrides as JSON, e.g. \'{"paths": 4}\''
     )
+    parser.add_argument("--data", type=Path, default=CONES, help="the Middlebury cones folder (default: %(default)s)")
+    _bench.add_quick(parser)
     args = parser.parse_args()
+    if args.quick:
+        args.case = "cones"
+    if args.case in (None, "cones"):
+        for name in CONES_FILES:
+            _bench.require(args.data / name, "Middlebury cones file")
     if args.case and args.engine:
-        print(json.dumps(run_case(args.case, args.engine, json.loads(args.set))))
-        return
+        print(json.dumps(run_case(args.case, args.engine, json.loads(args.set), args.data)))
+        return 0
     cases = [(c, e) for c in ("cones", "synthetic") for e in ("raw-sgbm", "sgbm", "census")
              if (args.case in (None, c)) and (args.engine in (None, e))]
     print(
         f"{'case':10s} {'engine':9s} {'size':>10s} {'D':>4s} {'s':>6s} {'Mpx*D/s':>8s}"
         f" {'RSS MB':>7s} {'bad1%':>6s} {'bad2%':>6s} {'MAE':>6s} {'dens%':>6s}"
     )
+    rows, failed = [], 0
     for case, engine in cases:
         proc = subprocess.run(
-            [sys.executable, __file__, "--case", case, "--engine", engine, "--set", args.set],
+            [sys.executable, __file__, "--case", case, "--engine", engine, "--set", args.set, "--data", str(args.data)],
             capture_output=True, text=True, check=False,
         )
         if proc.returncode:
             print(f"{case} {engine}: failed\n{proc.stderr[-2000:]}")
+            failed += 1
             continue
         r = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(r)
         print(
             f"{r['case']:10s} {r['engine']:9s} {r['size']:>10s} {r['disparities']:4d}"
             f" {r['seconds']:6.2f} {r['mpix_disp_per_s']:8.1f} {r['peak_rss_mb']:7.0f}"
@@ -180,7 +210,9 @@ def main() -> None:
             )
         if "stage_seconds" in r:
             print(f"{'':10s} stages: {r['stage_seconds']}, searched {r['searched']}")
+    print_ratios(rows)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

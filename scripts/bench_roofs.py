@@ -17,7 +17,9 @@ to one thread per process by ``recon3d.buildings.roofs``. Reported: buildings pe
 second (wall clock, best of ``--repeat``), how many got LoD2.2 and the reasons of the
 others, and the median / 90th percentile time per building in one process.
 
-    .venv/bin/python scripts/bench_roofs.py [--data DIR] [--copies N] [--repeat N] [--workers 1,2] [--json PATH]
+``--quick``: the 3DBAG workload once, one copy, one worker.
+
+    .venv/bin/python scripts/bench_roofs.py [--data DIR] [--copies N] [--repeat N] [--workers 1,2] [--json PATH] [--quick]
 """
 
 from __future__ import annotations
@@ -32,12 +34,14 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import _bench
 import numpy as np
 import shapely
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = ROOT.parent / "shared" / "data"
+DEFAULT_DATA = _bench.SHARED
 LODS = ("1", "2.2")
+INPUTS = {"3dbag": "citymodels/multi_lod.json", "delft": "lidar/delft_ahn3_strip.laz"}
 
 
 def sample_roofs(city, copies: int, density: float = 12.0, seed: int = 0):
@@ -155,7 +159,13 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", default="1,2")
     parser.add_argument("--only", choices=("3dbag", "delft"))
     parser.add_argument("--json", type=Path)
+    _bench.add_quick(parser)
     args = parser.parse_args(argv)
+    if args.quick:
+        args.only, args.copies, args.repeat, args.workers = "3dbag", 1, 1, "1"
+    for name, relative in INPUTS.items():
+        if args.only in (None, name):
+            _bench.require(args.data / relative, f"{name} input")
     sys.path.insert(0, str(ROOT))
     from recon3d.io.cityjson import read_cityjson
 
@@ -181,4 +191,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    _bench.guard(main)

@@ -17,6 +17,9 @@ Peers' DSMs are scored on their own grids (CARS 0.5-0.7 m, s2p 0.5 m, recon3d 1 
 default) against the same truth; they make no DTM and no buildings.
 
 ``--giza`` also runs the shared Pleiades pair and prints the checks of issue 16 there.
+Each peer that ran is printed beside recon3d with the ratio. A peer named by ``--cars``
+or ``--s2p`` that is not there stops a full run; ``--quick`` (the mountain scene, 80 m,
+recon3d alone beside the peers given) skips it with a note.
 
     .venv/bin/python scripts/bench_satellite.py                      # 400 m scenes (880 px)
     .venv/bin/python scripts/bench_satellite.py --size 500 --only mountain
@@ -30,12 +33,14 @@ import argparse
 import dataclasses
 import json
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import _bench
 import numpy as np
 
 from recon3d.config import PipelineConfig
@@ -46,7 +51,10 @@ from recon3d.synthetic.scene import scene_city
 from recon3d.synthetic.score import score_stereo
 
 HERE = Path(__file__).resolve().parent
-GIZA = HERE.parent.parent / "shared" / "data" / "stereo" / "pleiades_gizeh"
+GIZA = _bench.SHARED / "stereo" / "pleiades_gizeh"
+QUICK = ("mountain", 80.0)  # --quick: scene and side (m)
+PEER_INSTALL = {"cars": "its own venv: python -m venv v && v/bin/pip install cars",
+                "s2p": "its own venv, built as scripts/peer_s2p.py describes"}
 KHUFU = (31.134225, 29.979175)  # lon, lat of the Great Pyramid's apex
 
 
@@ -123,7 +131,7 @@ def print_rows(rows: list[dict]) -> None:
             print(f"{r['scene']:<10}{who:<14}" + "".join(cells))
 
 
-def bench_scene(name: str, size: float, tmp: Path, cars: str | None, s2p: str | None) -> dict:
+def bench_scene(name: str, size: float, tmp: Path, cars: str | None, s2p: str | None, sgbm_run: bool = True) -> dict:
     spec = dataclasses.replace(SATELLITE_SCENES[name], size=size)
     folder = tmp / name
     t = time.perf_counter()
@@ -131,8 +139,9 @@ def bench_scene(name: str, size: float, tmp: Path, cars: str | None, s2p: str | 
     row = {"scene": name, "pixels": made["cameras"][0].width, "render_s": round(time.perf_counter() - t, 1), "runs": {}}
     city = scene_city(folder)
     sgbm = PipelineConfig().with_overrides(["stereo.engine=sgbm"])
-    runs = {"recon3d": lambda: run_recon3d(folder, tmp / f"out-{name}-recon3d", None, city),
-            "recon3d-sgbm": lambda: run_recon3d(folder, tmp / f"out-{name}-sgbm", sgbm, city)}
+    runs = {"recon3d": lambda: run_recon3d(folder, tmp / f"out-{name}-recon3d", None, city)}
+    if sgbm_run:
+        runs["recon3d-sgbm"] = lambda: run_recon3d(folder, tmp / f"out-{name}-sgbm", sgbm, city)
     if cars:
         runs["cars"] = lambda: run_peer("peer_cars.py", folder, tmp / f"out-{name}-cars", "--cars", cars, city)
     if s2p:
@@ -153,6 +162,39 @@ def print_common(rows: list[dict]) -> None:
         for who, c in r.get("common_cells", {}).items():
             print(f"{r['scene']:<10}{who:<14}{c['share_of_common_percent']:>9.1f}{c['median']:>9.3f}{c['nmad']:>9.3f}"
                   f"{c['within_1m']:>9.2f}{c['rms']:>9.3f}")
+
+
+#: The figures printed beside a peer's, with their ratio (main table, then the common cells).
+RATIO_KEYS = [("coverage", "coverage %"), ("dsm_nmad", "DSM NMAD m"), ("dsm_rms_tolerant", "DSM RMS (tolerant) m"),
+              ("dsm_within_1m", "DSM within 1 m %"), ("seconds", "seconds")]
+COMMON_KEYS = [("nmad", "common NMAD m"), ("rms", "common RMS m"), ("within_1m", "common within 1 m %")]
+
+
+def print_ratios(rows: list[dict]) -> None:
+    """recon3d beside each peer that ran (CARS, s2p), scene by scene."""
+    for r in rows:
+        ours = r["runs"].get("recon3d", {})
+        for peer in ("cars", "s2p"):
+            theirs = r["runs"].get(peer)
+            if theirs is None or "error" in theirs or "error" in ours:
+                continue
+            common = r.get("common_cells", {})
+            _bench.print_ratios(f"{r['scene']}", peer, ours, theirs, RATIO_KEYS)
+            _bench.print_ratios(f"{r['scene']}, same cells", peer, common.get("recon3d", {}), common.get(peer, {}),
+                                COMMON_KEYS)
+
+
+def check_peers(args) -> None:
+    """Peers named but not there: refused in a full run, dropped with a note in ``--quick``."""
+    for peer in ("cars", "s2p"):
+        given = getattr(args, peer)
+        if given is None:
+            if args.quick:
+                print(f"note: {peer} not run (--{peer} PATH names its executable)")
+            continue
+        if shutil.which(given) is None:
+            _bench.peer_missing(peer, f"--{peer} {given} is no executable; {PEER_INSTALL[peer]}", args.quick)
+            setattr(args, peer, None)
 
 
 def giza_checks(tmp: Path) -> dict:
@@ -188,16 +230,24 @@ def main() -> None:
     parser.add_argument("--s2p", help="the s2p executable, to run s2p on the same pairs")
     parser.add_argument("--giza", action="store_true", help="also the checks on the shared Giza pair")
     parser.add_argument("--json", type=Path, help="write every figure here")
+    _bench.add_quick(parser)
     args = parser.parse_args()
+    if args.quick:
+        args.only, args.size = [QUICK[0]], QUICK[1]
+    if args.giza:
+        for name in ("img1.tif", "img2.tif"):
+            _bench.require(GIZA / name, "Pleiades image")
+    check_peers(args)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.only or list(SATELLITE_SCENES):
-            rows.append(bench_scene(name, args.size, Path(tmp), args.cars, args.s2p))
+            rows.append(bench_scene(name, args.size, Path(tmp), args.cars, args.s2p, sgbm_run=not args.quick))
             print_rows(rows[-1:])
         print()
         print_rows(rows)
         print()
         print_common(rows)
+        print_ratios(rows)
         result = {"scenes": rows}
         if args.giza:
             result["giza"] = giza_checks(Path(tmp))
@@ -208,4 +258,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

@@ -4,7 +4,9 @@ Renders the survey ``nadir_pair`` of the family (or another, ``--survey``), then
 :func:`recon3d.pipeline.stereo.dense_cloud` on it and reports the stages of the matcher
 and the peak memory.
 
-    .venv/bin/python scripts/bench_stereo.py [--survey nadir_pair] [--width 2000] [--engine census]
+``--quick``: the same survey at 320 px wide.
+
+    .venv/bin/python scripts/bench_stereo.py [--survey nadir_pair] [--width 2000] [--engine census] [--quick]
 """
 
 from __future__ import annotations
@@ -16,11 +18,16 @@ import tempfile
 import time
 from pathlib import Path
 
+import _bench
+
 from recon3d.config import StereoConfig
 from recon3d.io.colmap import read_scene
 from recon3d.pipeline.stereo import dense_cloud
 from recon3d.synthetic.family import CONFIGURATIONS
 from recon3d.synthetic.scene import write_block_scene
+
+QUICK_WIDTH = 320  # px
+MIN_WIDTH = 64  # px: below, the pair holds too few pixels to match
 
 
 def main() -> None:
@@ -28,7 +35,12 @@ def main() -> None:
     parser.add_argument("--survey", default="nadir_pair", choices=sorted(CONFIGURATIONS))
     parser.add_argument("--width", type=int, help="image width (default: the survey's, 2000 px for nadir_pair)")
     parser.add_argument("--engine", default="census", choices=["census", "sgbm"])
+    _bench.add_quick(parser)
     args = parser.parse_args()
+    if args.quick:
+        args.width = QUICK_WIDTH
+    if args.width is not None and args.width < MIN_WIDTH:
+        _bench.refuse(f"--width {args.width}: images of at least {MIN_WIDTH} px are needed")
     spec = CONFIGURATIONS[args.survey]
     if args.width:
         spec = spec.with_width(args.width)
@@ -51,4 +63,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    _bench.guard(main)

@@ -5,8 +5,8 @@ import pyproj
 import pytest
 import shapely
 from click.testing import CliRunner
-
 from conftest import BDUNI, DELFT, IGN, shared
+
 from recon3d.cli import cli
 
 
@@ -87,8 +87,8 @@ def test_footprints_without_crs(tmp_path):
 
 
 def test_footprints_in_another_crs_are_reprojected(tmp_path):
-    from recon3d.io.vectors import read_footprints, write_features
     from recon3d.core.geo import parse_crs
+    from recon3d.io.vectors import read_footprints, write_features
 
     fps, _ = read_footprints(shared(BDUNI), crs=parse_crs("EPSG:2154"))
     t = pyproj.Transformer.from_crs(2154, 4326, always_xy=True)
@@ -163,7 +163,6 @@ def test_change_detection_outputs(tmp_path):
     import json
 
     import jsonschema
-
     from conftest import BDUNI, CITYJSON_SCHEMA
 
     out = tmp_path / "out"
@@ -176,6 +175,7 @@ def test_change_detection_outputs(tmp_path):
     doc = json.loads((out / "buildings_updated.city.json").read_text())
     assert not list(jsonschema.Draft7Validator(json.loads(shared(CITYJSON_SCHEMA).read_text())).iter_errors(doc))
     assert "Changes against the older building database" in (out / "report.html").read_text()
+    _assert_help_lists(out)  # changes.geojson, changes.tif, buildings_updated.city.json too
     again = CliRunner().invoke(cli, ["change", str(out), "--old-buildings", str(shared(BDUNI))])
     assert again.exit_code == 1 and "--overwrite" in again.output
     again = CliRunner().invoke(cli, ["change", str(out), "--old-buildings", str(shared(BDUNI)), "--overwrite"])
@@ -217,3 +217,159 @@ def test_export_keeps_every_solid_or_says_why(tmp_path):
     assert (tmp_path / "r.obj").read_text().count("\nf ") >= with_area
     check = CliRunner().invoke(cli, ["validate", str(tmp_path / "r.city.json")])
     assert check.exit_code == 1 and "16 MultiSurface geometries" in check.output  # surfaces, never passed as solids
+
+
+# -- issue 21 item 6: verbosity after the subcommand, evaluate, export, run --help ------------
+
+
+@pytest.fixture
+def restore_logging():
+    """Leave the recon3d logger as the test found it (the CLI replaces its handler and level)."""
+    import logging
+
+    logger = logging.getLogger("recon3d")
+    saved = logger.level, list(logger.handlers)
+    yield logger
+    logger.setLevel(saved[0])
+    logger.handlers[:] = saved[1]
+
+
+def test_verbosity_after_the_subcommand(restore_logging, tmp_path):
+    import logging
+
+    city = str(shared("citymodels/multi_lod.json"))
+    for args, level in ((["validate", city, "-v"], logging.INFO), (["validate", city, "-vv"], logging.DEBUG),
+                        (["-v", "validate", city, "-v"], logging.DEBUG), (["validate", city, "-q"], logging.ERROR),
+                        (["-v", "validate", city, "-q"], logging.WARNING)):
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 0, (args, result.output)
+        assert restore_logging.level == level, args
+    out = tmp_path / "out"
+    for flag in ("-v", "-q", "--verbose", "--quiet"):  # run takes them after its arguments too
+        result = CliRunner().invoke(cli, ["run", str(tmp_path / "nope.laz"), "-o", str(out), flag])
+        _assert_clean_failure(result, out, "nope.laz", "not found")
+    assert "-v, --verbose" in CliRunner().invoke(cli, ["evaluate", "ground", "--help"]).output
+
+
+def _shifted_las(source, target, dx: float):
+    """A copy of a LAS/LAZ file moved ``dx`` CRS units east."""
+    import laspy
+
+    las = laspy.read(source)
+    las.header.offsets = las.header.offsets + [dx, 0, 0]
+    las.x = las.x + dx
+    las.write(target)
+    return target
+
+
+def _refused_overlap(args, json_path):
+    result = CliRunner().invoke(cli, [*map(str, args), "--json", str(json_path)])
+    assert result.exit_code == 1, result.output
+    line = result.output.strip()
+    assert line.startswith("recon3d: error:") and "does not overlap" in line and "\n" not in line, result.output
+    assert not json_path.exists()
+
+
+def test_evaluate_refuses_a_reference_elsewhere(ign_run, tmp_path):
+    """A reference 10 km away (or in another CRS) printed zeros and exited 0."""
+    import shapely.affinity
+    from affine import Affine
+
+    from recon3d.core.geo import parse_crs
+    from recon3d.core.raster import Raster
+    from recon3d.io.geotiff import read_raster, write_raster
+    from recon3d.io.vectors import read_footprints, write_features
+
+    out = ign_run.out_dir
+    far_las = _shifted_las(shared(IGN), tmp_path / "far.laz", 10000.0)
+    _refused_overlap(["evaluate", "ground", out / "cloud.laz", "--reference", far_las], tmp_path / "g.json")
+    _refused_overlap(["evaluate", "buildings", out, "--reference", far_las], tmp_path / "b.json")
+    crs = parse_crs("EPSG:2154")
+    fps, _ = read_footprints(shared(BDUNI), crs=crs)
+    far = tmp_path / "far.geojson"
+    write_features(far, [shapely.affinity.translate(f.polygon, 10000.0) for f in fps], [{"id": f.id} for f in fps], crs)
+    _refused_overlap(["evaluate", "buildings", out, "--reference", far], tmp_path / "b.json")
+    dtm = read_raster(out / "dtm.tif")  # the right reference, a DTM somewhere else
+    far_dtm = tmp_path / "far_dtm.tif"
+    write_raster(Raster(dtm.data, Affine.translation(10000.0, 0.0) @ dtm.transform, dtm.crs), far_dtm)
+    _refused_overlap(["evaluate", "ground", out / "cloud.laz", "--reference", shared(IGN), "--dtm", far_dtm],
+                     tmp_path / "g.json")
+
+
+def test_evaluate_ground_table_is_aligned(ign_run):
+    result = CliRunner().invoke(cli, ["evaluate", "ground", str(ign_run.out_dir / "cloud.laz"),
+                                      "--reference", str(shared(IGN))])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    header, rows = lines[1], lines[2:]
+    assert header.split()[:3] == ["product", "reference", "n"], header  # was "productreference"
+    assert rows and all(len(r) == len(header) for r in rows), result.output  # right-aligned columns end together
+    for r in rows:
+        assert r[header.index("reference"):].startswith(("DTM from provider", "provider ground")), r
+        assert r[: header.index("reference")].strip() == "DTM"
+
+
+def test_export_gltf_writes_json(ign_run, tmp_path):
+    import json
+
+    import trimesh
+
+    out = ign_run.out_dir
+    for fmt, name in (("gltf", "b.gltf"), ("glb", "b.glb")):
+        result = CliRunner().invoke(cli, ["export", str(out), "--format", fmt, "-o", str(tmp_path / name)])
+        assert result.exit_code == 0, result.output
+    assert (tmp_path / "b.glb").read_bytes()[:4] == b"glTF"
+    doc = json.loads((tmp_path / "b.gltf").read_text(encoding="utf-8"))  # JSON, not GLB bytes
+    assert doc["asset"]["version"] == "2.0"
+    assert all(b["uri"].startswith("data:") for b in doc["buffers"])  # one file: no .bin beside it
+    assert sorted(n["name"] for n in doc["nodes"]) == sorted(b.id for b in ign_run.city if b.solids)
+    assert doc["scenes"][0]["extras"]["recon3d"]["crs"] == "EPSG:2154"
+    as_json, as_glb = trimesh.load(tmp_path / "b.gltf"), trimesh.load(tmp_path / "b.glb")
+    assert sorted(as_json.geometry) == sorted(as_glb.geometry)
+    for key, mesh in as_json.geometry.items():
+        assert np.array_equal(mesh.vertices, as_glb.geometry[key].vertices)
+        assert np.array_equal(mesh.faces, as_glb.geometry[key].faces)
+    # a name the format contradicts is refused, nothing written
+    for fmt, name in (("gltf", "c.glb"), ("glb", "c.gltf")):
+        result = CliRunner().invoke(cli, ["export", str(out), "--format", fmt, "-o", str(tmp_path / name)])
+        assert result.exit_code == 1 and "--format" in result.output and not (tmp_path / name).exists()
+
+
+def test_export_gltf_reads_in_pygltflib(ign_run, tmp_path):
+    pygltflib = pytest.importorskip("pygltflib")
+    result = CliRunner().invoke(cli, ["export", str(ign_run.out_dir), "--format", "gltf", "-o", str(tmp_path / "b.gltf")])
+    assert result.exit_code == 0, result.output
+    gltf = pygltflib.GLTF2().load(str(tmp_path / "b.gltf"))
+    assert len(gltf.nodes) == sum(1 for b in ign_run.city if b.solids)
+    assert gltf.binary_blob() is None or gltf.buffers[0].uri.startswith("data:")
+
+
+def test_export_default_is_a_new_file(ign_run, tmp_path):
+    """Without -o, 4 of the 5 formats named the run's own file and answered "exists"."""
+    import hashlib
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(ign_run.out_dir, out)
+    digest = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in out.iterdir()}
+    for fmt, name in (("cityjson", "buildings.city.json"), ("cityjsonseq", "buildings.city.jsonl"),
+                      ("obj", "buildings.obj"), ("gltf", "buildings.gltf"), ("glb", "buildings.glb")):
+        result = CliRunner().invoke(cli, ["export", str(out), "--format", fmt])
+        assert result.exit_code == 0, (fmt, result.output)
+        assert (out / "export" / name).is_file() and str(out / "export" / name) in result.output
+        again = CliRunner().invoke(cli, ["export", str(out), "--format", fmt])
+        assert again.exit_code == 1 and "--overwrite" in again.output
+    assert (out / "export" / "buildings.mtl").is_file()
+    assert {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in out.iterdir() if p.is_file()} == digest
+
+
+def _assert_help_lists(folder):
+    """Every file a run wrote in ``folder`` is named in ``recon3d run --help``."""
+    text = CliRunner().invoke(cli, ["run", "--help"]).output
+    missing = [p.name for p in sorted(folder.iterdir()) if p.name not in text]
+    assert not missing, f"run --help does not name {missing}"
+
+
+def test_run_help_lists_every_output(ign_run):
+    assert (ign_run.out_dir / "report.html").is_file()
+    _assert_help_lists(ign_run.out_dir)

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyproj
 import shapely
-import trimesh
 
 from recon3d.core.geo import LocalFrame
 from recon3d.core.mesh import SolidMesh, newell_normal, solid_mesh, triangulate_surface
+
+if TYPE_CHECKING:  # trimesh (and scipy with it) is imported by to_trimesh, when a mesh is wanted
+    import trimesh
 
 __all__ = ["SEMANTIC_TYPES", "Building", "CityModel", "Solid", "newell_normal", "triangulate_surface"]
 
@@ -68,6 +70,8 @@ class Solid:
         normals. ``metadata["semantics"]`` holds one surface type per triangle and
         ``metadata["surface_index"]`` each triangle's surface.
         """
+        import trimesh
+
         vertices, faces, index = self.mesh()
         mesh = trimesh.Trimesh(vertices.copy(), faces.copy(), process=False)
         mesh.metadata["semantics"] = [self.semantics[i] for i in index]

@@ -1,4 +1,7 @@
-"""Binary glTF (GLB) export of the buildings of a :class:`~recon3d.core.city.CityModel`.
+"""glTF export of the buildings of a :class:`~recon3d.core.city.CityModel`: binary or JSON.
+
+:func:`write_glb` writes a binary ``.glb``; :func:`write_gltf` the same scene as one
+JSON ``.gltf`` file, its buffer embedded as a base64 data URI (no ``.bin`` beside it).
 
 One node per building, named by its id, holding the building's highest-LoD solid as
 one mesh of one primitive: the triangles of :meth:`~recon3d.core.city.Solid.mesh`,
@@ -40,7 +43,7 @@ from recon3d.io.obj import MATERIALS, highest_lod, surface_order
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GLTF_FROM_LOCAL", "write_glb"]
+__all__ = ["GLTF_FROM_LOCAL", "write_glb", "write_gltf"]
 
 #: (3, 3) rotation taking local Z-up (x, y, z) to glTF Y-up (x, z, -y): ``p_gltf = R @ p``.
 GLTF_FROM_LOCAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -65,14 +68,31 @@ def write_glb(city: CityModel, path: str | Path) -> None:
     log.info("wrote %d building nodes to %s", len(scene.geometry), path)
 
 
-def _empty_glb(extras: dict) -> bytes:
-    """A GLB with one empty scene carrying ``extras`` (header + JSON chunk, no buffer)."""
-    doc = {
+def write_gltf(city: CityModel, path: str | Path) -> None:
+    """Write the scene of :func:`write_glb` as one JSON glTF file, its buffer embedded (atomic)."""
+    scene = build_scene(city)
+    if scene.geometry:
+        data = scene.export(file_type="gltf", embed_buffers=True)["model.gltf"]
+    else:
+        log.warning("no building has a solid: %s holds an empty scene", path)
+        data = json.dumps(_empty_document(scene.metadata), separators=(",", ":")).encode("utf-8")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    log.info("wrote %d building nodes to %s", len(scene.geometry), path)
+
+
+def _empty_document(extras: dict) -> dict:
+    """A glTF document with one empty scene carrying ``extras``."""
+    return {
         "asset": {"version": "2.0", "generator": "recon3d"},
         "scene": 0,
         "scenes": [{"nodes": [], "extras": extras}],
     }
-    chunk = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+
+
+def _empty_glb(extras: dict) -> bytes:
+    """A GLB with one empty scene carrying ``extras`` (header + JSON chunk, no buffer)."""
+    chunk = json.dumps(_empty_document(extras), separators=(",", ":")).encode("utf-8")
     chunk += b" " * (-len(chunk) % 4)  # chunks are 4-byte aligned, JSON padded with spaces
     header = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(chunk))
     return header + struct.pack("<II", len(chunk), 0x4E4F534A) + chunk

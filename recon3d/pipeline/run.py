@@ -468,6 +468,15 @@ def _grid_dsm(s: RunState, cloud: PointCloud, res: float, *, max_hole_cells: int
     )
 
 
+#: Largest DSM hole filled (m2) when ``dsm.max_hole_area`` is unset, by source, and the reason run.json records.
+HOLE_AREA = {
+    "frame": (1000.0, "frame stereo: ground hidden behind buildings from one image (a wide-base survey "
+                      "hides whole streets), inside the area both images see, filled from the low side of its rim"),
+    "satellite": (200.0, "satellite stereo: ground hidden behind buildings, filled from the low side of its rim"),
+    "lidar": (25.0, "LiDAR: gaps between scan lines, filled from the mean of their rim"),
+}
+
+
 def make_dsm(s: RunState) -> None:
     cfg, u = s.config.dsm, s.units
     spacing = dsm_stage.point_spacing(s.cloud.xyz[:, :2])
@@ -482,12 +491,7 @@ def make_dsm(s: RunState) -> None:
     s.auto["dsm.resolution"] = {"value": res, "unit": u.name, "reason": why}
     s.auto["point_spacing"] = {"value": round(spacing, 3), "unit": u.name}
     frame_stereo = s.scene is not None and s.satellite_paths is None
-    defaults = {
-        "frame": (1000.0, "frame stereo: ground hidden behind buildings from one image (a wide-base survey "
-                          "hides whole streets), inside the area both images see, filled from the low side of its rim"),
-        "satellite": (200.0, "satellite stereo: ground hidden behind buildings, filled from the low side of its rim"),
-        "lidar": (25.0, "LiDAR: gaps between scan lines, filled from the mean of their rim"),
-    }["frame" if frame_stereo else "satellite" if s.scene is not None else "lidar"]
+    defaults = HOLE_AREA["frame" if frame_stereo else "satellite" if s.scene is not None else "lidar"]
     hole_area = cfg.max_hole_area if cfg.max_hole_area is not None else defaults[0]
     s.auto["dsm.max_hole_area"] = {"value": hole_area, "reason": "config" if cfg.max_hole_area is not None else defaults[1]}
 

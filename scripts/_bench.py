@@ -1,0 +1,96 @@
+"""What every ``scripts/bench_*.py`` shares: ``--quick``, refusing unusable data, peers side by side.
+
+- ``--quick`` runs a benchmark on tiny input (a small synthetic case or a small crop
+  of the shared data) in seconds; ``tests/test_benchmarks.py`` runs every benchmark so,
+  so none can rot unnoticed. Its figures only show that the benchmark still works.
+- :func:`refuse` ends a benchmark given data it cannot use: one line on stderr naming
+  the benchmark, the data and the problem, exit status 1 (:func:`guard` turns a recon3d
+  input error, a missing file or an unreadable image into the same).
+- :func:`peer_missing`: a peer tool (CSF, CARS, s2p) that is not installed is skipped
+  with a printed note in ``--quick``; a full run refuses, naming how to install it.
+- :func:`print_ratios` prints recon3d's and a peer's figures side by side with their ratio.
+
+Scripts import it as ``_bench`` (``scripts/`` is on ``sys.path`` when one runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import NoReturn
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+
+QUICK_HELP = "tiny input, a few seconds: checks the benchmark still runs (the test suite runs it so)"
+
+
+def add_quick(parser: argparse.ArgumentParser) -> None:
+    """Add the ``--quick`` flag."""
+    parser.add_argument("--quick", action="store_true", help=QUICK_HELP)
+
+
+def _name() -> str:
+    return Path(sys.argv[0]).name or "benchmark"
+
+
+def refuse(message: str) -> NoReturn:
+    """Say why the benchmark cannot run on what it was given (stderr, one line) and exit 1."""
+    print(f"{_name()}: {message}", file=sys.stderr)
+    raise SystemExit(1)
+
+
+def require(path: Path, what: str) -> Path:
+    """``path`` when it exists, else :func:`refuse` naming ``what`` it should be."""
+    if not Path(path).exists():
+        refuse(f"{path}: {what} not found")
+    return Path(path)
+
+
+def guard(main: Callable[[], object]) -> None:
+    """Run ``main``; unusable input (recon3d input errors, missing or unreadable files) exits 1 in one line."""
+    from recon3d.errors import Recon3dError
+
+    try:
+        result = main()
+    except BrokenPipeError:  # stdout closed early (| head): not the data's fault
+        raise
+    except Exception as exc:
+        if not _data_error(exc, Recon3dError):
+            raise
+        refuse(f"cannot use the data: {exc}")
+    raise SystemExit(result if isinstance(result, int) else 0)
+
+
+def _data_error(exc: Exception, recon3d_error: type) -> bool:
+    """True for errors an unusable input causes: recon3d's, file system, raster, LAS and CRS readers'."""
+    return isinstance(exc, recon3d_error | OSError) or type(exc).__module__.split(".")[0] in ("rasterio", "laspy", "pyproj")
+
+
+def peer_missing(peer: str, install: str, quick: bool) -> None:
+    """A peer that is not installed: a note in ``--quick``, else :func:`refuse` naming how to install it."""
+    if not quick:
+        refuse(f"{peer} is not installed ({install}); --quick runs without it")
+    print(f"note: {peer} is not installed ({install}); skipped in --quick, recon3d's side only")
+
+
+def ratio(a, b) -> float:
+    """``a / b``; NaN when either is missing, infinite for ``b == 0 < a``."""
+    if not isinstance(a, int | float) or not isinstance(b, int | float) or math.isnan(a) or math.isnan(b):
+        return math.nan
+    if b == 0:
+        return 1.0 if a == 0 else math.inf
+    return a / b
+
+
+def print_ratios(title: str, peer: str, ours: dict, theirs: dict, keys: list[tuple[str, str]]) -> None:
+    """One block: each figure of ``keys`` (key, label) for recon3d and ``peer``, and recon3d / peer."""
+    print(f"  {title}: recon3d beside {peer}")
+    print(f"    {'figure':<22}{'recon3d':>11}{peer:>11}{'ratio':>8}")
+    for key, label in keys:
+        a, b = ours.get(key), theirs.get(key)
+        cells = [f"{v:>11.4g}" if isinstance(v, int | float) else f"{'-':>11}" for v in (a, b)]
+        print(f"    {label:<22}{''.join(cells)}{ratio(a, b):>8.2f}")

@@ -1,0 +1,85 @@
+"""Benchmarks that cannot rot: every ``scripts/bench_*.py`` runs with ``--quick``.
+
+Each runs in its own interpreter on this checkout, on tiny input (a small synthetic
+case or a small crop of the shared data, seconds each); a peer tool that is not
+installed (CSF, CARS, s2p) is skipped with a printed note. A benchmark given data it
+cannot use says so in one line and exits 1. A new ``bench_*.py`` is picked up by the
+glob, so it needs a ``--quick`` too. No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import shared
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHES = sorted(p.name for p in (ROOT / "scripts").glob("bench_*.py"))
+#: Benchmarks reading files, given a folder that holds none of them.
+WITH_DATA = [n for n in BENCHES if '"--data"' in (ROOT / "scripts" / n).read_text(encoding="utf-8")]
+
+pytestmark = pytest.mark.bench
+
+
+def _bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "2")}
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / name), *args], capture_output=True, text=True,
+                          env=env, cwd=cwd, timeout=600, check=False)  # the timeout only stops a hang
+
+
+@pytest.mark.parametrize("name", BENCHES)
+def test_quick(name, tmp_path):
+    shared("")  # the shared data folder: fails in CI, skips elsewhere, when it is missing
+    done = _bench(name, "--quick", cwd=tmp_path)
+    assert done.returncode == 0, f"{name} --quick failed:\n{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
+    assert "Traceback" not in done.stderr
+    assert done.stdout.strip(), f"{name} --quick printed nothing"
+
+
+@pytest.mark.parametrize("name", WITH_DATA)
+def test_unusable_data_exits_1(name, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    done = _bench(name, "--quick", "--data", str(empty), cwd=tmp_path)
+    assert done.returncode == 1, f"{name}: {done.stdout[-1000:]}\n{done.stderr[-2000:]}"
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"{name}: ") and str(empty) in last, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_every_bench_has_a_quick_mode():
+    assert len(BENCHES) >= 10
+    for name in BENCHES:
+        assert "_bench.add_quick(parser)" in (ROOT / "scripts" / name).read_text(encoding="utf-8"), name
+
+
+def _helpers():
+    spec = importlib.util.spec_from_file_location("_bench", ROOT / "scripts" / "_bench.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_side_by_side_ratio(capsys):
+    helpers = _helpers()
+    helpers.print_ratios("scene", "peer", {"rms": 0.5, "s": 2.0}, {"rms": 1.0, "s": 0.0},
+                         [("rms", "RMS m"), ("s", "seconds"), ("missing", "other")])
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].strip() == "scene: recon3d beside peer"
+    assert lines[2].split() == ["RMS", "m", "0.5", "1", "0.50"]
+    assert lines[3].split()[-1] == "inf" and lines[4].split()[-1] == "nan"
+
+
+def test_peer_missing(capsys):
+    helpers = _helpers()
+    helpers.peer_missing("CSF", "pip install x", quick=True)
+    assert "note: CSF is not installed" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:
+        helpers.peer_missing("CSF", "pip install x", quick=False)
+    assert stop.value.code == 1 and "pip install x" in capsys.readouterr().err
