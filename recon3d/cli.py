@@ -128,8 +128,10 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
     buildings.city.json, buildings.obj (with its materials, buildings.mtl),
     buildings.glb, buildings_3dtiles/ (3D Tiles 1.1), footprints.geojson,
     footprints.gpkg, report.json, report.html and run.json; with --old-buildings
-    also changes.geojson, changes.tif and buildings_updated.city.json. Parameters
-    left unset are chosen from the data and recorded, with the reason, in run.json.
+    also changes.geojson, changes.tif and buildings_updated.city.json; from stereo
+    inputs also ortho.tif (true orthophoto) and ortho_diff.tif (the images'
+    disagreement on the DSM). Parameters left unset are chosen from the data and
+    recorded, with the reason, in run.json.
 
     \b
     Examples

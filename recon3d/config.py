@@ -30,6 +30,7 @@ __all__ = [
     "DtmConfig",
     "GroundConfig",
     "LodConfig",
+    "OrthoConfig",
     "PipelineConfig",
     "StereoConfig",
 ]
@@ -298,6 +299,34 @@ class ChangeConfig:
             raise InputError(f"change.height_reference {self.height_reference!r}: choose ground or absolute")
 
 
+@dataclass(frozen=True)
+class OrthoConfig:
+    """True orthophotos of stereo inputs (ortho.tif) and the image-difference check of
+    the DSM (ortho_diff.tif). See ``recon3d.stereo.ortho``.
+
+    Attributes
+    ----------
+    surface : {"dsm", "dtm", "model"}
+        What the orthophoto is rectified on: the DSM (a true orthophoto), the DTM
+        (buildings lean, as in a classic orthophoto) or the DTM with the building
+        model (the model DSM).
+    doubtful_threshold : float
+        Image difference (1 - NCC, 0 to 2) above which a DSM cell is doubtful.
+    doubtful_area : float
+        Smallest connected doubtful area (m2) listed in the report.
+    """
+
+    surface: str = "dsm"
+    doubtful_threshold: float = 0.6
+    doubtful_area: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.surface not in ("dsm", "dtm", "model"):
+            raise InputError(f"ortho.surface {self.surface!r}: choose dsm, dtm or model")
+        if not (0.0 < self.doubtful_threshold < 2.0) or not (0.0 <= self.doubtful_area < 1e9):
+            raise InputError("ortho.doubtful_threshold must lie in (0, 2) and ortho.doubtful_area be >= 0 (m2)")
+
+
 #: Levels of detail :class:`LodConfig` can build.
 LODS = ("1", "1.3", "2.2")
 
@@ -313,6 +342,7 @@ class PipelineConfig:
     buildings: BuildingsConfig = field(default_factory=BuildingsConfig)
     lod: LodConfig = field(default_factory=LodConfig)
     change: ChangeConfig = field(default_factory=ChangeConfig)
+    ortho: OrthoConfig = field(default_factory=OrthoConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> PipelineConfig:

@@ -25,7 +25,7 @@ from recon3d.core.raster import Raster
 from recon3d.errors import InputError
 from recon3d.io import atomic_path, require_file
 
-__all__ = ["block_size", "overview_factors", "read_dem", "read_raster", "write_raster"]
+__all__ = ["block_size", "overview_factors", "read_dem", "read_raster", "write_image", "write_raster"]
 
 #: Compression of every raster: DEFLATE with the floating-point predictor (lossless).
 COMPRESSION = {"compress": "deflate", "predictor": 3}
@@ -113,6 +113,49 @@ def _write_tiled_copy(raster: Raster, path: Path, profile: dict) -> None:
         with mem.open() as src:
             rasterio.shutil.copy(src, path, driver="GTiff", tiled=True, blockxsize=block, blockysize=block,
                                  copy_src_overviews=True, **COMPRESSION)
+
+
+def write_image(data: np.ndarray, grid: Raster, path: str | Path, *, mask: np.ndarray | None = None) -> None:
+    """Write an image (an orthophoto) as a Cloud Optimized GeoTIFF, atomically.
+
+    Parameters
+    ----------
+    data : (bands, rows, cols) uint8 or float32
+        RGB or one grey band. uint8 images get an alpha band from ``mask`` (0 where
+        nothing is known, so QGIS shows it transparent); float32 ones keep NaN nodata.
+    grid : Raster
+        Gives the transform, CRS and tags (its data is not written).
+    mask : (rows, cols) bool, optional
+        Cells holding a value (uint8 images).
+    """
+    from rasterio.enums import ColorInterp
+
+    bands, rows, cols = data.shape
+    byte = data.dtype == np.uint8
+    if byte:
+        alpha = (np.ones((rows, cols), bool) if mask is None else mask).astype(np.uint8) * 255
+        data = np.concatenate([data, alpha[None]])
+    profile = {"width": cols, "height": rows, "count": len(data), "dtype": "uint8" if byte else "float32",
+               "crs": to_rasterio_crs(grid.crs), "transform": grid.transform, "compress": "deflate",
+               "predictor": 2 if byte else 3}
+    if not byte:
+        profile["nodata"] = np.nan
+    colours = ([ColorInterp.red, ColorInterp.green, ColorInterp.blue] if bands == 3 else [ColorInterp.gray] * bands)
+    colours += [ColorInterp.alpha] if byte else []
+    block = block_size((rows, cols))
+    with atomic_path(path) as tmp, rasterio.MemoryFile() as mem:
+        with mem.open(driver="GTiff", **profile) as ds:
+            ds.write(data)
+            ds.colorinterp = colours
+            if grid.tags:
+                ds.update_tags(**grid.tags)
+            factors = overview_factors((rows, cols), block)
+            if factors:
+                ds.build_overviews(factors, Resampling.average)
+        with mem.open() as src:
+            rasterio.shutil.copy(src, tmp, driver="GTiff", tiled=True, blockxsize=block, blockysize=block,
+                                 copy_src_overviews=True, compress="deflate", predictor=profile["predictor"],
+                                 photometric="RGB" if bands == 3 else "MINISBLACK")
 
 
 def read_raster(path: str | Path) -> Raster:

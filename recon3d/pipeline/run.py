@@ -91,6 +91,8 @@ class RunState:
     dsm_consistent: np.ndarray | None = None  # stereo: DSM cells holding a guess the images agree with
     reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
+    ortho: Any = None  # stereo: the true orthophoto (recon3d.stereo.ortho.OrthoImage)
+    ortho_diff: Raster | None = None  # stereo: image difference of the matched pairs on the DSM
     dtm: Raster | None = None
     ndsm: Raster | None = None
     model_dsm: Raster | None = None
@@ -896,6 +898,55 @@ def rasterize_model(s: RunState) -> None:
     s.model_dsm, s.roof_cover = render(s.city, s.dtm)
 
 
+def make_orthophotos(s: RunState) -> None:
+    """Stereo inputs: the true orthophoto on the chosen surface and the image-difference
+    map of every matched pair on the DSM, with the areas where the images disagree."""
+    if s.scene is None:
+        return
+    from recon3d.stereo import ortho
+
+    cfg, u = s.config.ortho, s.units
+    if s.satellite_paths is not None:
+        views = ortho.satellite_views(s.scene, s.dsm.crs, s.auto["stereo"].get("relative_bias_px", (0.0, 0.0)))
+        pairs = [(0, 1)]
+    else:
+        views = ortho.frame_views(s.scene)
+        names = [v.name for v in views]
+        pairs = [tuple(names.index(n) for n in record["images"]) for record in s.auto["stereo"]["pairs"]]
+    gsd = ortho.image_gsd(views, s.dsm)
+    surface = {"dsm": s.dsm, "dtm": s.dtm, "model": s.model_dsm}[cfg.surface]
+    tolerance = u.height(ORTHO_TOLERANCE)
+    on_dsm = ortho.looks_on(s.dsm, views, gsd, tolerance=tolerance)
+    s.ortho = ortho.true_ortho(surface, views, gsd, tolerance=tolerance, looks=on_dsm if cfg.surface == "dsm" else None)
+    s.ortho_diff = ortho.ortho_difference(s.dsm, views, pairs, gsd, tolerance=tolerance, looks=on_dsm)
+    ids = [b.id for b in s.city]
+    regions = ortho.doubtful_regions(s.ortho_diff, cfg.doubtful_threshold, u.area(cfg.doubtful_area), s.labels, ids)
+    judged = np.isfinite(s.ortho_diff.data)
+    doubtful = judged & ortho.doubtful_cells(s.ortho_diff, cfg.doubtful_threshold)
+    cell = s.dsm.resolution / round(s.dsm.resolution / s.ortho.transform.a)
+    s.auto["ortho"] = {"surface": cfg.surface, "cell": round(cell, 4),
+                       "reason": f"the images' ground sample distance ({gsd:.3f}), a whole fraction of the DSM cell"}
+    area = sum(r["area"] for r in regions)
+    s.report["ortho"] = {
+        "surface": cfg.surface, "cell": round(cell, 4), "pairs": len(pairs),
+        "seen_percent": round(100.0 * float(s.ortho.seen.mean()), 1),
+        "judged_percent": round(100.0 * float(judged.mean()), 1),
+        "doubtful_percent_of_judged": round(100.0 * float(doubtful.sum() / max(judged.sum(), 1)), 1),
+        "threshold": cfg.doubtful_threshold, "doubtful_area": round(area, 1), "regions": regions[:50],
+    }
+    if judged.any() and area > DOUBTFUL_WARN_SHARE * judged.sum() * s.dsm.resolution**2:
+        s.warn(f"the images disagree on the DSM over {area:.0f} {u.name}2 in {len(regions)} areas "
+               f"({100 * area / (judged.sum() * s.dsm.resolution**2):.1f} % of what they both see with texture): "
+               "see ortho_diff.tif and the report's list")
+
+
+#: Height (m) below the highest surface on the same image ray still counted as seen in an orthophoto.
+ORTHO_TOLERANCE = 0.5
+
+#: Share of the judged area in doubtful regions above which the run warns.
+DOUBTFUL_WARN_SHARE = 0.05
+
+
 def evaluate_products(s: RunState) -> None:
     u = s.units
     tables = []
@@ -1030,6 +1081,12 @@ def write_products(s: RunState) -> None:
     for name, raster in (("dsm", s.dsm), ("dtm", s.dtm), ("ndsm", s.ndsm), ("model_dsm", s.model_dsm)):
         raster.tags.setdefault("height_units", s.units.name)
         write_raster(raster, w / f"{name}.tif")
+    if s.ortho is not None:
+        from recon3d.io.geotiff import write_image
+
+        grid = Raster(np.zeros((1, 1)), s.ortho.transform, s.dsm.crs, {"product": f"true orthophoto on the {s.config.ortho.surface}"})
+        write_image(s.ortho.data, grid, w / "ortho.tif", mask=s.ortho.seen)
+        write_raster(s.ortho_diff, w / "ortho_diff.tif")
     write_las(_classified_cloud(s), w / "cloud.laz")
     write_cityjson(s.city, w / "buildings.city.json")
     write_obj(s.city, w / "buildings.obj")
@@ -1056,6 +1113,7 @@ STAGES: list[tuple[str, Callable[[RunState], None]]] = [
     ("buildings", find_buildings),
     ("lod", build_solids),
     ("model_dsm", rasterize_model),
+    ("ortho", make_orthophotos),
     ("evaluate", evaluate_products),
     ("change", detect_changes),
     ("write", write_products),
