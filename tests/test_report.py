@@ -4,6 +4,7 @@ import json
 import re
 from html.parser import HTMLParser
 
+import numpy as np
 from click.testing import CliRunner
 
 from recon3d.cli import cli
@@ -161,3 +162,26 @@ def test_report_command_regenerates(delft_run, tmp_path):
     assert (delft_run.out_dir / "report.html").read_bytes() == before  # same run, same bytes
     bad = CliRunner().invoke(cli, ["report", str(tmp_path)])
     assert bad.exit_code == 1 and "not a recon3d output folder" in bad.output
+
+
+def test_scale_bar_is_in_metres_whatever_the_crs_unit():
+    """A map 2000 ft wide (609.6 m): the bar's drawn length is its label in metres at the map's scale."""
+    from recon3d.report import maps
+
+    frame = maps.MapFrame.fit((0.0, 0.0, 2000.0, 1000.0))
+    bar = maps._scale_bar(frame, metres_per_unit=0.3048)
+    label = float(re.search(r">(\d+) m</text>", bar).group(1))
+    drawn = sum(float(w) for w in re.findall(r'<rect x="[\d.]+" y="[\d.]+" width="([\d.]+)" height="6"', bar))
+    assert abs(drawn - label / 0.3048 * frame.scale) < 0.5
+    assert 0.15 < drawn / frame.width < 0.4 and label == 200.0  # about a quarter: 1, 2 or 5 x 10^k m
+
+
+def test_no_data_is_transparent():
+    from recon3d.report import maps
+
+    z = np.add.outer(np.arange(40.0), np.arange(60.0)) * 0.1
+    z[5:15, 10:30] = np.nan
+    rgba = maps.shaded_relief(z, 0.5, 0.0, 10.0, "terrain", upsample=2)
+    assert rgba.shape == (80, 120, 4)
+    assert (rgba[10:30, 20:60, 3] == 0).all() and (rgba[40:, :, 3] == 255).all()
+    assert np.ptp(rgba[40:, :, :3].astype(int)) > 50  # tinted by height, not flat

@@ -167,7 +167,7 @@ def _ticks(frame: MapFrame, bounds, crs_label: str) -> str:
 
 def _scale_bar(frame: MapFrame, metres_per_unit: float) -> str:
     """Four alternating segments, lower left, in metres whatever the CRS unit."""
-    metres_per_px = 1.0 / (frame.scale * metres_per_unit)
+    metres_per_px = metres_per_unit / frame.scale
     length_m = nice_step(frame.width * metres_per_px / 4, 1)
     seg = length_m / metres_per_px / 4
     x, y = 14, frame.height - 22
