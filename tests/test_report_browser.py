@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import chromium
 
 from recon3d.cli import cli
-from tests.conftest import chromium
 
 pytestmark = pytest.mark.slow
 

@@ -38,7 +38,7 @@ table.kv th{text-align:left;font-weight:500;background:#f7f8fa}
 .meta{color:var(--muted);font-size:.92em;margin:.2em 0 1em}
 .cards{display:flex;flex-wrap:wrap;gap:10px;margin:1em 0}
 .card{border:1px solid var(--line);border-radius:6px;padding:.5em .9em;min-width:120px;background:#fbfcfd}
-.card b{display:block;font-size:1.35em}.card span{color:var(--muted);font-size:.82em}
+.card.alert{border-color:#e08a00;background:#fff6e5}.card b{display:block;font-size:1.35em}.card span{color:var(--muted);font-size:.82em}
 nav{font-size:.88em;margin:.6em 0}nav a{margin-right:1em;color:var(--accent);text-decoration:none}
 .small,figcaption{font-size:.85em;color:var(--muted)}
 .warn{background:#fff6e5;border-left:4px solid #e08a00;padding:.3em .8em;margin:.4em 0}
@@ -193,7 +193,8 @@ def _header(run: dict, report: dict, buildings: list[dict]) -> str:
             cards.append((fmt_m(row.get("rms"), " m"), "model RMS on roofs"))
         if row.get("product") == "DTM" and row.get("reference") == "provider ground points":
             cards.append((fmt_m(row.get("rms"), " m"), "DTM RMS, provider ground"))
-    card_html = "".join(f"<div class=card><b>{v}</b><span>{label}</span></div>" for v, label in cards)
+    card_html = "".join(f"<div class=\"card{' alert' if label == 'warnings' and v else ''}\"><b>{v}</b><span>{label}</span></div>"
+                        for v, label in cards)
     return (f"<h1>recon3d report</h1><div class=meta><b>{source}</b><br>{meta}</div>"
             f"<div class=cards>{card_html}</div>")
 
@@ -432,7 +433,7 @@ def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str,
     frame = maps.MapFrame.fit(bounds)
     rgba = maps.shaded_relief(z, r.resolution * h_unit, lo, hi, cmap, maps.upsample_factor(z.shape, frame))
     legend = maps.colour_bar(frame, lo, hi, cmap, title, key=path.stem)
-    return maps.figure_html(maps.png_uri(rgba), f"{title} map", frame, bounds, crs_label=_crs_label(run),
+    return maps.figure_html(maps.png_uri(rgba), f"{title} map", frame, bounds, key=path.stem, crs_label=_crs_label(run),
                             metres_per_unit=h_unit, legend=legend, caption=caption)
 
 
@@ -444,27 +445,24 @@ def _bounds(r) -> tuple[float, float, float, float]:
 
 
 def _surfaces_section(out_dir: Path, run: dict) -> str:
-    figures = []
-    dsm_path, dtm_path, ndsm_path = (out_dir / f"{n}.tif" for n in ("dsm", "dtm", "ndsm"))
-    shared = None
-    if dsm_path.exists():
-        z = read_raster(dsm_path).data.astype(float) * _metres_per_unit(run)[1]
-        if np.isfinite(z).any():
-            shared = tuple(float(v) for v in np.nanpercentile(z, [1, 99]))
+    """DSM, DTM (each tinted over its own 1-99 % height range) and nDSM (from 0)."""
     note = f"Hillshade from the north-west, tinted by height; {maps.NODATA_NOTE}."
-    for path, title, cmap, caption in (
-        (dsm_path, "DSM height (m)", "terrain", "DSM: the highest surface (roofs, trees, ground). " + note),
-        (dtm_path, "DTM height (m)", "terrain", "DTM: the bare ground, same colours as the DSM. " + note),
-        (ndsm_path, "height above ground (m)", "height", "nDSM: DSM minus DTM. " + note),
+    figures = []
+    for name, title, cmap, caption in (
+        ("dsm", "DSM height (m)", "terrain", "DSM: the highest surface (roofs, trees, ground). "),
+        ("dtm", "DTM height (m)", "terrain", "DTM: the bare ground. "),
+        ("ndsm", "height above ground (m)", "height", "nDSM: DSM minus DTM. "),
     ):
-        if path.exists():
-            value_range = shared if cmap == "terrain" else None
-            if cmap == "height":
-                z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
-                top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
-                value_range = (0.0, max(top, 1.0))
-            figures.append(f"<h3>{title.split(' ')[0] if cmap == 'terrain' else 'nDSM'}</h3>"
-                           + _raster_figure(path, run, title, cmap, caption, value_range))
+        path = out_dir / f"{name}.tif"
+        if not path.exists():
+            continue
+        value_range = None
+        if cmap == "height":
+            z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
+            top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
+            value_range = (0.0, max(top, 1.0))
+        figures.append(f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
+                       + _raster_figure(path, run, title, cmap, caption + note, value_range))
     return "".join(figures)
 
 
@@ -574,7 +572,7 @@ def _building_map(out_dir: Path, run: dict, rows: list[dict]) -> str:
     caption = ("Footprints over the DSM hillshade, coloured by building height (roof top above ground); courtyards are "
                "holes. Dashed orange: LoD1.3 fallback; hatched: no solid. Hover a building for its figures, click it "
                "to find its row in the table.")
-    return maps.figure_html(maps.png_uri(base), "buildings map", frame, bounds, crs_label=_crs_label(run),
+    return maps.figure_html(maps.png_uri(base), "buildings map", frame, bounds, key="bldg", crs_label=_crs_label(run),
                             metres_per_unit=h_unit, legend=legend, overlay=overlay, caption=caption)
 
 
@@ -626,7 +624,7 @@ def _changes_section(c: dict | None) -> str:
         return ""
     rows = [(html.escape(k), _fmt_num(v) if _finite(v) else html.escape(str(v))) for k, v in c["summary"].items()]
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in c.get("notes", []))
-    return f"<h3>Against the older building database</h3>{_kv(rows)}<ul class=small>{notes}</ul>"
+    return f"<h3>Changes against the older building database</h3>{_kv(rows)}<ul class=small>{notes}</ul>"
 
 
 def _timings_section(run: dict) -> str:

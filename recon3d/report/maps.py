@@ -48,7 +48,7 @@ class MapFrame:
     height: int
 
     @classmethod
-    def fit(cls, bounds: tuple[float, float, float, float], max_width: int = 860, max_height: int = 640) -> MapFrame:
+    def fit(cls, bounds: tuple[float, float, float, float], max_width: int = 860, max_height: int = 860) -> MapFrame:
         """The frame showing ``bounds`` (xmin, ymin, xmax, ymax) as large as fits."""
         xmin, ymin, xmax, ymax = bounds
         scale = min(max_width / max(xmax - xmin, 1e-9), max_height / max(ymax - ymin, 1e-9))
@@ -217,10 +217,11 @@ DEFS = ('<svg width="0" height="0" style="position:absolute" aria-hidden="true">
          "</pattern></defs></svg>")
 
 
-def figure_html(image_uri: str, alt: str, frame: MapFrame, bounds, *, crs_label: str, metres_per_unit: float,
-                legend: str, overlay: str = "", caption: str = "") -> str:
-    """One map figure: the raster, its overlay (SVG drawn in image pixels), ticks,
-    scale bar, north arrow and ``legend`` (SVG, right of the frame)."""
+def figure_html(image_uri: str, alt: str, frame: MapFrame, bounds, *, key: str, crs_label: str,
+                metres_per_unit: float, legend: str, overlay: str = "", caption: str = "") -> str:
+    """One map figure: the raster, its overlay (SVG drawn in image pixels, clipped to
+    the frame), ticks, scale bar, north arrow and ``legend`` (SVG, right of the frame).
+    ``key`` makes the figure's SVG ids unique in the page."""
     m = MARGIN
     w, h = frame.width + m["left"] + m["right"], frame.height + m["top"] + m["bottom"]
     img = (f'<img class=raster src="{image_uri}" alt="{html.escape(alt)}" width="{frame.width}" '
@@ -228,7 +229,8 @@ def figure_html(image_uri: str, alt: str, frame: MapFrame, bounds, *, crs_label:
     svg = (
         f'<svg class=overlay width="{w}" height="{h}" viewBox="0 0 {w} {h}" aria-hidden="true">'
         f'<g transform="translate({m["left"]},{m["top"]})">'
-        f'{overlay}{_ticks(frame, bounds, crs_label)}'
+        f'<defs><clipPath id="clip-{key}"><rect width="{frame.width}" height="{frame.height}"/></clipPath></defs>'
+        f'<g clip-path="url(#clip-{key})">{overlay}</g>{_ticks(frame, bounds, crs_label)}'
         f'<rect x="0" y="0" width="{frame.width}" height="{frame.height}" fill="none" stroke="#333" stroke-width="1"/>'
         f"{_scale_bar(frame, metres_per_unit)}{_north_arrow(frame)}{legend}</g></svg>"
     )
