@@ -181,7 +181,17 @@ def test_no_data_is_transparent():
 
     z = np.add.outer(np.arange(40.0), np.arange(60.0)) * 0.1
     z[5:15, 10:30] = np.nan
-    rgba = maps.shaded_relief(z, 0.5, 0.0, 10.0, "terrain", upsample=2)
+    rgba = maps.shaded_relief(z, 0.5, 0.0, 10.0, "terrain", factor=2)
     assert rgba.shape == (80, 120, 4)
     assert (rgba[10:30, 20:60, 3] == 0).all() and (rgba[40:, :, 3] == 255).all()
     assert np.ptp(rgba[40:, :, :3].astype(int)) > 50  # tinted by height, not flat
+
+
+def test_large_rasters_are_embedded_near_display_size():
+    from recon3d.report import maps
+
+    frame = maps.MapFrame.fit((0.0, 0.0, 3000.0, 2000.0))
+    factor = maps.resample_factor((4000, 6000), frame)
+    rgba = maps.shaded_relief(np.random.default_rng(0).normal(size=(400, 600)), 1.0, -1, 1, "terrain", factor)
+    assert factor * 6000 == 2 * frame.width and rgba.shape[1] == round(600 * factor)
+    assert maps.resample_factor((100, 200), frame) == 2.0  # small: up, by a whole factor

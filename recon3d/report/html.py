@@ -431,7 +431,7 @@ def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str,
     lo, hi = value_range or tuple(np.nanpercentile(z, [1, 99]))
     bounds = _bounds(r)
     frame = maps.MapFrame.fit(bounds)
-    rgba = maps.shaded_relief(z, r.resolution * h_unit, lo, hi, cmap, maps.upsample_factor(z.shape, frame))
+    rgba = maps.shaded_relief(z, r.resolution * h_unit, lo, hi, cmap, maps.resample_factor(z.shape, frame))
     legend = maps.colour_bar(frame, lo, hi, cmap, title, key=path.stem)
     return maps.figure_html(maps.png_uri(rgba), f"{title} map", frame, bounds, key=path.stem, crs_label=_crs_label(run),
                             metres_per_unit=h_unit, legend=legend, caption=caption)
@@ -524,6 +524,8 @@ def _buildings_section(out_dir: Path, run: dict, report: dict, rows: list[dict])
     facts = [(f"status {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("statuses", {}).items()]
     facts += [(f"LoD {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("lods", {}).items()]
     facts += [(f"reason {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("reasons", {}).items()]
+    if c["blocks"]:
+        facts.append(("blocks of BuildingParts", _fmt_int(c["blocks"])))
     return (definition + _kv(facts) + _building_map(out_dir, run, rows) + "<h3>Every building</h3>"
             + _building_table(rows))
 
@@ -537,7 +539,7 @@ def _building_map(out_dir: Path, run: dict, rows: list[dict]) -> str:
     bounds = _bounds(r)
     frame = maps.MapFrame.fit(bounds)
     z = r.data.astype(float) * v_unit
-    base = maps.shaded_relief(z, r.resolution * h_unit, 0, 1, None, maps.upsample_factor(z.shape, frame))
+    base = maps.shaded_relief(z, r.resolution * h_unit, 0, 1, None, maps.resample_factor(z.shape, frame))
     heights = [b.get("height_m") for b in rows if _finite(b.get("height_m"))]
     top = max(nice_ceiling(max(heights)) if heights else 10.0, 1.0)
     shapes, labels = [], []
