@@ -120,12 +120,17 @@ def test_report_defines_one_building_count(delft_run):
 
 
 def test_ground_filter_without_objects_is_not_applicable():
-    """A provider classifying ground only (Autzen): kappa 0 means nothing, it reads n/a."""
-    section = report_html._ground_section({"n": 26107, "type_i_percent": 0.0115, "type_ii_percent": 0.0,
-                                           "total_percent": 0.0115, "kappa": 0.0, "scored_share_percent": 23.73,
-                                           "reference_ground": 26107, "reference_objects": 0})
-    assert "<td>n/a</td>" in section and "0.000" not in section and "do not apply" in section
-    assert "<td>23.7</td>" in section
+    """A provider classifying ground only (Autzen: classes 1 and 2): kappa 0 means nothing, it reads n/a."""
+    from recon3d.quality.evaluate import ground_filter_errors
+
+    classes = np.array([2] * 99 + [1] * 300 + [2])
+    errors = ground_filter_errors(np.arange(400) != 0, classes)  # one ground point rejected
+    assert errors["reference_objects"] == 0 and errors["kappa"] == 0.0
+    section = report_html._ground_section(errors)
+    assert section.count("<td>n/a</td>") == 2 and "0.000" not in section and "do not apply" in section
+    assert "<td>1.0</td>" in section and "<td>25.0</td>" in section  # Type I %, share scored %
+    with_objects = ground_filter_errors(np.arange(400) < 100, np.array([2] * 100 + [6] * 300))
+    assert "<td>1.000</td>" in report_html._ground_section(with_objects)
 
 
 def test_stereo_sections_round_their_figures():
