@@ -28,6 +28,22 @@ def shared(relative: str) -> Path:
     return path
 
 
+def chromium() -> str:
+    """Path of Debian's chromium for the browser tests; fails in CI, skips elsewhere, when
+    it (or the playwright package driving it) is missing."""
+    path = shutil.which("chromium") or shutil.which("chromium-browser")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        path = None
+    if path is None:
+        message = "chromium or playwright missing: apt-get install chromium; pip install -e '.[dev]'"
+        if os.environ.get("CI") == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
 def copy_scene(scene: Path, tmp_path: Path) -> Path:
     """A copy of a scene folder to spoil, in ``tmp_path / "scene"``."""
     dst = tmp_path / "scene"

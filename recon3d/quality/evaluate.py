@@ -82,6 +82,9 @@ def ground_filter_errors(is_ground: np.ndarray, reference_classes: np.ndarray) -
         "total_percent": 100.0 * (b + c) / n,
         "kappa": (po - pe) / (1 - pe) if pe < 1 else 1.0,
         "scored_share_percent": 100.0 * float(np.mean(scored)),
+        # without objects (a provider classifying ground only) Type II and kappa do not apply
+        "reference_ground": a + b,
+        "reference_objects": c + d,
     }
 
 

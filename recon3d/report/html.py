@@ -1,33 +1,79 @@
-"""A self-contained HTML report of a run: tables, histograms, hillshades and a buildings map.
+"""A self-contained HTML report of a run, from its run.json, report.json and products.
 
-Everything is inline (PNG as data URIs, histograms and the map as SVG), so the file
-opens offline and can be mailed as is.
+Everything is inline (rasters as PNG data URIs, overlays and histograms as SVG, a few
+lines of JS to sort the tables), so the file opens offline and can be mailed as is.
+Numbers are rounded for people: metres to the centimetre, percentages to 0.1, and a
+measure that does not apply reads "n/a" (never a zero that looks like a failure).
 """
 
 from __future__ import annotations
 
-import base64
 import html
 import json
+import math
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from recon3d.errors import InputError
 from recon3d.io import atomic_path
 from recon3d.io.geotiff import read_raster
+from recon3d.report import maps
+from recon3d.report.maps import hillshade
 
-__all__ = ["hillshade", "write_report"]
+__all__ = ["fmt_m", "fmt_pct", "hillshade", "write_report"]
+
+NA = "n/a"
 
 STYLE = """
-body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}
-h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ddd;padding:3px 8px;text-align:right}
-th{background:#f3f3f3}td.l,th.l{text-align:left}.grid{display:flex;flex-wrap:wrap;gap:12px}
-figure{margin:0}figcaption{font-size:.85em;color:#555;text-align:center}img{max-width:340px;border:1px solid #ccc}
-.small{font-size:.85em;color:#555}
-.warn{background:#fff4e0;border-left:4px solid #e08a00;padding:.4em .8em}
+:root{--ink:#1d2733;--muted:#5b6672;--line:#d9dee4;--head:#eef1f4;--accent:#1f5f99}
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;color:var(--ink);background:#f6f7f9}
+main{max-width:1120px;margin:0 auto;padding:1.2em 2em 3em;background:#fff;box-shadow:0 0 8px rgba(0,0,0,.06)}
+h1{font-size:1.7em;margin:.3em 0 .1em}h2{font-size:1.25em;border-bottom:2px solid var(--accent);padding-bottom:.2em;margin-top:1.8em}
+h3{font-size:1.02em;margin:1.2em 0 .3em}
+table{border-collapse:collapse;margin:.4em 0 .8em;font-size:.9em;font-variant-numeric:tabular-nums}
+td,th{border:1px solid var(--line);padding:3px 8px;text-align:right;vertical-align:middle}
+th{background:var(--head);font-weight:600}td.l,th.l{text-align:left}
+table.kv th{text-align:left;font-weight:500;background:#f7f8fa}
+.meta{color:var(--muted);font-size:.92em;margin:.2em 0 1em}
+.cards{display:flex;flex-wrap:wrap;gap:10px;margin:1em 0}
+.card{border:1px solid var(--line);border-radius:6px;padding:.5em .9em;min-width:120px;background:#fbfcfd}
+.card.alert{border-color:#e08a00;background:#fff6e5}.card b{display:block;font-size:1.35em}.card span{color:var(--muted);font-size:.82em}
+nav{font-size:.88em;margin:.6em 0}nav a{margin-right:1em;color:var(--accent);text-decoration:none}
+.small,figcaption{font-size:.85em;color:var(--muted)}
+.warn{background:#fff6e5;border-left:4px solid #e08a00;padding:.3em .8em;margin:.4em 0}
+.ok{background:#eef7ee;border-left:4px solid #3c8d40;padding:.5em .8em}
+.warn li.note{color:var(--muted)}.warn li{margin:.25em 0}
+.tag{display:inline-block;font-size:.75em;border-radius:3px;padding:0 5px;margin-right:6px;color:#fff;background:#e08a00}
+.tag.note{background:#7a8794}
+figure.map{margin:.6em 0 1.4em}.canvas{position:relative}
+img.raster{position:absolute;display:block;background:repeating-linear-gradient(45deg,#f4f4f4 0 5px,#cdcdcd 5px 7px)}
+svg.overlay{position:absolute;left:0;top:0;overflow:visible}
+svg text{font-family:system-ui,sans-serif;fill:#222}.tl{font-size:11px}.axis{font-size:12px;fill:#444}
+line.grid{stroke:#fff;stroke-opacity:.45;stroke-width:.7}line.tick{stroke:#333;stroke-width:1}
+.bldg path{stroke:#1b1b1b;stroke-width:1;fill-rule:evenodd;cursor:pointer}.bldg path:hover,.bldg path.hi{stroke:#e3007a;stroke-width:2.5}
+.bldg text{font-size:10px;fill:#111;paint-order:stroke;stroke:#fff;stroke-width:3px;pointer-events:none}
+table.sortable th{cursor:pointer;user-select:none}table.sortable th:after{content:" \\2195";color:#aab}
+table.sortable th.asc:after{content:" \\2191";color:#333}table.sortable th.desc:after{content:" \\2193";color:#333}
+table.buildings{width:100%}table.buildings td{white-space:nowrap}tr.hi td{background:#ffe8f4}td.bad{color:#b00020}td.fallback{color:#b35900}.na{color:#9aa3ad}
+footer{margin-top:2.5em;font-size:.8em;color:var(--muted)}
+"""
+
+SCRIPT = """
+document.querySelectorAll('table.sortable').forEach(function(t){
+  t.querySelectorAll('th').forEach(function(th,i){th.addEventListener('click',function(){
+    var asc=!th.classList.contains('asc');t.querySelectorAll('th').forEach(function(h){h.classList.remove('asc','desc')});
+    th.classList.add(asc?'asc':'desc');var body=t.tBodies[0],rows=Array.from(body.rows);
+    rows.sort(function(a,b){var x=a.cells[i].dataset.v,y=b.cells[i].dataset.v;
+      var nx=parseFloat(x),ny=parseFloat(y),c;
+      if(x===''||x===undefined){return 1}if(y===''||y===undefined){return -1}
+      c=(!isNaN(nx)&&!isNaN(ny))?nx-ny:x.localeCompare(y);return asc?c:-c});
+    rows.forEach(function(r){body.appendChild(r)})})})});
+function hi(id,on){document.querySelectorAll('[data-b="'+id+'"]').forEach(function(e){e.classList.toggle('hi',on)})}
+document.querySelectorAll('[data-b]').forEach(function(e){var id=e.dataset.b;
+  e.addEventListener('mouseenter',function(){hi(id,true)});e.addEventListener('mouseleave',function(){hi(id,false)});
+  if(e.tagName==='path'){e.addEventListener('click',function(){var r=document.getElementById('row-'+id);
+    if(r){r.scrollIntoView({block:'center'})}})}});
 """
 
 
@@ -45,23 +91,27 @@ def write_report(out_dir: str | Path) -> Path:
         run = json.loads((out_dir / "run.json").read_text(encoding="utf-8"))
     except FileNotFoundError as exc:
         raise InputError(f"{out_dir}: not a recon3d output folder ({Path(exc.filename).name} missing)") from None
-    parts = [
-        f"<h1>recon3d report</h1><p class=small>{html.escape(run['inputs'].get('input', ''))} · "
-        f"{run['inputs'].get('points', '?')} points · CRS {html.escape(str(run['inputs'].get('crs')))} · "
-        f"recon3d {html.escape(run.get('recon3d', ''))}</p>",
-        _warnings_section(report.get("warnings") or run.get("warnings") or []),
-        _accuracy_section(report.get("accuracy", [])),
-        _stereo_section(run.get("chosen", {}).get("stereo")),
-        _ground_section(report),
-        _images_section(out_dir),
-        _buildings_section(out_dir, report),
-        _changes_section(report),
-        _timings_section(run),
-        _parameters_section(run),
+    buildings = _building_rows(out_dir)
+    sections = [
+        ("warnings", "Warnings and notes", _warnings_section(run, report)),
+        ("accuracy", "Accuracy", _accuracy_section(report.get("accuracy", []))),
+        ("ground", "Ground filter", _ground_section(report.get("ground_filter"))),
+        ("detection", "Building detection", _detection_section(report)),
+        ("stereo", "Stereo", _stereo_section(run.get("chosen", {}).get("stereo"))),
+        ("surfaces", "Surfaces", _surfaces_section(out_dir, run)),
+        ("buildings", "Buildings", _buildings_section(out_dir, run, report, buildings)),
+        ("changes", "Changes", _changes_section(report.get("changes"))),
+        ("timings", "Timings", _timings_section(run)),
+        ("parameters", "Parameters", _parameters_section(run)),
     ]
+    sections = [(key, title, body) for key, title, body in sections if body]
+    nav = "".join(f'<a href="#{key}">{title}</a>' for key, title, _ in sections)
+    body = "".join(f'<section id="{key}"><h2>{title}</h2>{content}</section>' for key, title, content in sections)
     page = (
-        "<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>recon3d report</title>"
-        f"<style>{STYLE}</style></head><body>{''.join(parts)}</body></html>"
+        "<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
+        f"<title>recon3d report: {html.escape(Path(run['inputs'].get('input', '')).name)}</title>"
+        f"<style>{STYLE}</style></head><body>{maps.DEFS}<main>{_header(run, report, buildings)}<nav>{nav}</nav>{body}"
+        f"{_footer(run)}</main><script>{SCRIPT}</script></body></html>"
     )
     path = out_dir / "report.html"
     with atomic_path(path) as tmp:
@@ -69,214 +119,563 @@ def write_report(out_dir: str | Path) -> Path:
     return path
 
 
-def hillshade(z: np.ndarray, cell: float, *, azimuth: float = 315.0, altitude: float = 45.0) -> np.ndarray:
-    """(rows, cols) uint8 hillshade of a height grid (NaN cells black)."""
-    filled = np.where(np.isfinite(z), z, np.nanmin(z) if np.isfinite(z).any() else 0.0)
-    gy, gx = np.gradient(filled, cell)
-    slope = np.arctan(np.hypot(gx, gy))
-    aspect = np.arctan2(-gx, gy)
-    az, alt = np.radians(360.0 - azimuth + 90.0), np.radians(altitude)
-    shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
-    out = np.clip(shade * 255, 0, 255).astype(np.uint8)
-    out[~np.isfinite(z)] = 0
-    return out
+# --------------------------------------------------------------------------- numbers
 
 
-def _warnings_section(warnings: list[str]) -> str:
-    if not warnings:
-        return ""
-    items = "".join(f"<li>{html.escape(w)}</li>" for w in warnings)
-    return f"<h2>Warnings</h2><div class=warn><ul>{items}</ul></div>"
+def _finite(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def _satellite_section(stereo: dict) -> str:
-    """Satellite pair: each tile's searched heights and why, bias, share matched, or why it failed."""
-    tiles = stereo["tiles"]
-    head = ("tile", "core (px)", "heights searched (m)", "from", "bias (px)", "vertical parallax (px)",
-            "matched % of overlap", "points")
-    rows = []
-    for t in tiles["per_tile"]:
-        cells = [t["tile"], t["core"], "{:.1f} .. {:.1f}".format(*t["search_heights_m"]), t["search_from"],
-                 t["bias_px"], t["vertical_parallax_px"].get("median"), t["matched_percent"], t["points"]]
-        rows.append("<tr>" + "".join(f"<td class=l>{html.escape(str(c))}</td>" for c in cells) + "</tr>")
-    for f in tiles["failures"]:
-        rows.append(f"<tr><td class=l>{f['tile']}</td><td class=l>{f['core']}</td>"
-                    f"<td class=l colspan=6>failed: {html.escape(f['reason'])}</td></tr>")
-    ties = stereo.get("tie_points", {})
-    note = (f"<p class=small>{ties.get('on_epipolar_curves', '?')} of {ties.get('sift_matches', '?')} SIFT tie points "
-            f"within {ties.get('epipolar_tolerance_px', '?')} px of their epipolar curves, heights "
-            f"{stereo.get('tie_heights_m')} m; {stereo.get('matched_percent')} % of the overlap matched "
-            "(the rest filled in: no DTM and no building from it).</p>")
-    check = stereo.get("self_check") or {}
-    if check.get("tie_points"):
-        note += (f"<p class=small>Self-check: at {check['tie_points']} tie points the dense disparities differ from "
-                 f"SIFT's by {check['median_px']} px (median; {check['median_m']} m), {check['within_1px_percent']} % "
-                 "within 1 px.</p>")
-    return (
-        "<h2>Satellite pair: tiles</h2><table><tr>" + "".join(f"<th>{h}</th>" for h in head)
-        + f"</tr>{''.join(rows)}</table>{note}"
-    )
+def fmt_m(v, unit: str = "") -> str:
+    """A length in metres to the centimetre ("n/a" for None or NaN)."""
+    return f"{v:.2f}{unit}" if _finite(v) else NA
 
 
-def _stereo_section(stereo: dict | None) -> str:
-    """Frame stereo: each matched pair and its self-check against the sparse points;
-    satellite pairs: their tiles."""
-    if stereo and "tiles" in stereo:
-        return _satellite_section(stereo)
-    if not stereo or not stereo.get("pairs") or "self_check" not in stereo["pairs"][0]:
-        return ""
-    head = ("pair", "matched % of overlap", "sparse points covered %", "distance to sparse points (m)",
-            "in GSD", "reprojection (px, p95)", "vertical parallax (px)", "share of the cloud %")
-    rows = []
-    for p in stereo["pairs"]:
-        c = p["self_check"]
-        cells = [p.get("matched_percent"), c.get("coverage_percent"), c.get("discrepancy_m"), c.get("discrepancy_gsd"),
-                 c.get("reprojection_px"), p.get("vertical_parallax_px", {}).get("median"), p.get("fused_share_percent")]
-        rows.append(f"<tr><td class=l>{html.escape(p['pair'])}</td>" + "".join(f"<td>{_fmt(v, 2)}</td>" for v in cells) + "</tr>")
-    area = stereo.get("common_area")
-    note = ""
-    if area:
-        note = (f"<p class=small>Area both images of a matched pair see: {area['area_m2']:.0f} m², "
-                f"{area['filled_percent']:.1f} % in the DSM, {area['observed_percent']:.1f} % of it matched "
-                "(not filled in).</p>")
-    return (
-        "<h2>Stereo pairs and their self-check</h2><table><tr>" + "".join(f"<th>{h}</th>" for h in head)
-        + f"</tr>{''.join(rows)}</table>{note}"
-    )
+def fmt_pct(v) -> str:
+    """A percentage to 0.1 ("n/a" for None or NaN)."""
+    return f"{v:.1f}" if _finite(v) else NA
+
+
+def _fmt_int(v) -> str:
+    return f"{int(v):,}" if _finite(v) else NA
+
+
+def _fmt_num(v) -> str:
+    """A parameter as people write it: 4 significant digits, integers as integers."""
+    if isinstance(v, bool) or not _finite(v):
+        return html.escape(str(v))
+    if float(v).is_integer() and abs(v) < 1e15:
+        return f"{int(v):,}"
+    return f"{v:.4g}"
+
+
+def _td(text: str, value=None, cls: str = "") -> str:
+    """A table cell; ``value`` (number or text) is what the table sorts on."""
+    v = "" if value is None or (isinstance(value, float) and not math.isfinite(value)) else html.escape(str(value))
+    if text == NA:
+        cls = (cls + " na").strip()
+    c = f' class="{cls}"' if cls else ""
+    return f'<td{c} data-v="{v}">{text}</td>'
+
+
+def _table(head: list[str], rows: list[str], *, cls: str = "", left: int | set[int] = 1) -> str:
+    """A table; ``left`` is the number of leading left-aligned columns, or their indices."""
+    left = set(range(left)) if isinstance(left, int) else left
+    ths = "".join(f'<th{" class=l" if i in left else ""}>{h}</th>' for i, h in enumerate(head))
+    c = f' class="{cls}"' if cls else ""
+    return f"<table{c}><thead><tr>{ths}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def _kv(rows: list[tuple[str, str]]) -> str:
+    return "<table class=kv><tbody>" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows) + "</tbody></table>"
+
+
+# --------------------------------------------------------------------------- header, warnings
+
+
+def _header(run: dict, report: dict, buildings: list[dict]) -> str:
+    inputs = run.get("inputs", {})
+    chosen = run.get("chosen", {})
+    cell = chosen.get("dsm.resolution", {}).get("value")
+    crs = inputs.get("crs") or "?"
+    units = inputs.get("units", {}).get("horizontal", "")
+    facts = [inputs.get("kind", ""), f"{_fmt_int(inputs.get('points'))} points", f"CRS {crs}" + (f" ({units})" if units else "")]
+    if chosen.get("reference_date", {}).get("value"):
+        facts.append(f"reference date {chosen['reference_date']['value']}")
+    meta = " · ".join(html.escape(str(x)) for x in facts)
+    source = " + ".join(html.escape(str(p)) for p in (inputs.get("input", ""), inputs.get("second_image")) if p)
+    count = _building_count(report.get("buildings", {}), buildings)
+    cards = [(count["buildings"], "buildings"), (count["with_solid"], "with a solid"),
+             (fmt_m(cell, " m") if cell else NA, "DSM cell"),
+             (len(run.get("warnings", [])), "warnings")]
+    for row in report.get("accuracy", []):
+        if row.get("reference") == "measured DSM on roofs" and row.get("product") == "model DSM":
+            cards.append((fmt_m(row.get("rms"), " m"), "model RMS on roofs"))
+        if row.get("product") == "DTM" and row.get("reference") == "provider ground points":
+            cards.append((fmt_m(row.get("rms"), " m"), "DTM RMS, provider ground"))
+    card_html = "".join(f"<div class=\"card{' alert' if label == 'warnings' and v else ''}\"><b>{v}</b><span>{label}</span></div>"
+                        for v, label in cards)
+    return (f"<h1>recon3d report</h1><div class=meta><b>{source}</b><br>{meta}</div>"
+            f"<div class=cards>{card_html}</div>")
+
+
+def _warnings_section(run: dict, report: dict) -> str:
+    """Every warning and note of run.json (and of report.json, once), at the top."""
+    warnings = list(dict.fromkeys(list(run.get("warnings") or []) + list(report.get("warnings") or [])))
+    notes = list(dict.fromkeys(run.get("notes") or []))
+    if not warnings and not notes:
+        return "<p class=ok id=no-warnings>No warnings and no notes: every check of the run passed.</p>"
+    items = [f'<li class=warning><span class=tag>warning</span>{html.escape(w)}</li>' for w in warnings]
+    items += [f'<li class=note><span class="tag note">note</span>{html.escape(n)}</li>' for n in notes]
+    return f"<div class=warn><ul id=warning-list>{''.join(items)}</ul></div>"
+
+
+# --------------------------------------------------------------------------- accuracy
 
 
 def _accuracy_section(rows: list[dict]) -> str:
     if not rows:
-        return "<h2>Accuracy</h2><p>No reference was given (check points, provider classes or a reference DSM).</p>"
-    head = "".join(f"<th>{h}</th>" for h in ("n", "mean", "std", "RMS", "max", "NMAD", "≤ 1 m %", "≤ 2 m %"))
+        return "<p>No reference was given (check points, provider classes or a reference DSM).</p>"
+    head = ["product", "reference", "n", "mean", "std", "RMS", "max |error|", "NMAD", "≤ 1 m %", "≤ 2 m %",
+            "errors −3 … +3 m"]
     body = []
     for r in rows:
-        cells = [r["n"]] + [_fmt(r[k]) for k in ("mean", "std", "rms", "max_abs", "nmad", "within_1m", "within_2m")]
-        body.append(
-            f"<tr><td class=l>{html.escape(r['product'])}</td><td class=l>{html.escape(r['reference'])}</td>"
-            + "".join(f"<td>{c}</td>" for c in cells)
-            + f"<td>{_histogram_svg(r.get('histogram'))}</td></tr>"
-        )
-    return (
-        "<h2>Accuracy (metres)</h2><table><tr><th class=l>product</th><th class=l>reference</th>"
-        f"{head}<th>errors −3…+3 m</th></tr>{''.join(body)}</table>"
-    )
+        cells = [_td(html.escape(r["product"]), r["product"], "l"), _td(html.escape(r["reference"]), r["reference"], "l"),
+                 _td(_fmt_int(r.get("n")), r.get("n"))]
+        cells += [_td(fmt_m(r.get(k)), r.get(k)) for k in ("mean", "std", "rms", "max_abs", "nmad")]
+        cells += [_td(fmt_pct(r.get(k)), r.get(k)) for k in ("within_1m", "within_2m")]
+        cells.append(f"<td>{_histogram_svg(r.get('histogram'))}</td>")
+        body.append("<tr class=acc>" + "".join(cells) + "</tr>")
+    return (_table(head, body, cls="accuracy", left=2)
+            + "<p class=small>Errors in metres (product minus reference). NMAD: the median absolute deviation scaled to a standard deviation "
+            "(robust to outliers). The histogram's red line is zero.</p>")
 
 
-def _histogram_svg(hist: dict | None, width: int = 180, height: int = 40) -> str:
+def _histogram_svg(hist: dict | None, width: int = 160, height: int = 34) -> str:
     if not hist or not sum(hist["counts"]):
         return ""
     counts = np.asarray(hist["counts"], dtype=float)
     w = width / len(counts)
     bars = "".join(
-        f'<rect x="{i * w:.1f}" y="{height - h:.1f}" width="{w - 1:.1f}" height="{h:.1f}" fill="#4a7ebb"/>'
+        f'<rect x="{i * w:.1f}" y="{height - h:.1f}" width="{max(w - 1, .5):.1f}" height="{h:.1f}" fill="#4a7ebb"/>'
         for i, h in enumerate(counts / counts.max() * height)
     )
     mid = f'<line x1="{width / 2}" y1="0" x2="{width / 2}" y2="{height}" stroke="#c00" stroke-width="1"/>'
     return f'<svg width="{width}" height="{height}" role="img" aria-label="error histogram">{bars}{mid}</svg>'
 
 
-def _ground_section(report: dict) -> str:
-    g = report.get("ground_filter")
+def _ground_section(g: dict | None) -> str:
     if not g or not g.get("n"):
         return ""
-    return (
-        "<h2>Ground filter against the provider's classes</h2><table><tr><th>points scored</th><th>Type I %</th>"
-        f"<th>Type II %</th><th>total %</th><th>kappa</th></tr><tr><td>{g['n']}</td><td>{_fmt(g['type_i_percent'])}</td>"
-        f"<td>{_fmt(g['type_ii_percent'])}</td><td>{_fmt(g['total_percent'])}</td><td>{_fmt(g['kappa'], 4)}</td></tr></table>"
-    )
+    # kappa and Type II need objects (classes 3-6) in the provider's classes
+    no_objects = g.get("reference_objects") == 0 or (
+        "reference_objects" not in g and g.get("type_ii_percent") == 0 and g.get("kappa") == 0)
+    type_ii = NA if no_objects else fmt_pct(g.get("type_ii_percent"))
+    kappa = NA if no_objects else (f"{g['kappa']:.3f}" if _finite(g.get("kappa")) else NA)
+    rows = [("points scored", _fmt_int(g["n"])), ("share of the cloud scored %", fmt_pct(g.get("scored_share_percent"))),
+            ("Type I % (ground rejected)", fmt_pct(g.get("type_i_percent"))),
+            ("Type II % (objects accepted as ground)", type_ii),
+            ("total error %", fmt_pct(g.get("total_percent"))), ("Cohen's kappa", kappa)]
+    note = ("<p class=small>Against the provider's classes: ground (2) versus vegetation and buildings (3–6); "
+            "unclassified points are left out.")
+    if no_objects:
+        note += " The provider's classes hold no vegetation or building, so Type II and kappa do not apply."
+    return _kv(rows) + note + "</p>"
 
 
-def _images_section(out_dir: Path) -> str:
+def _detection_section(report: dict) -> str:
+    """The building detection scores against the provider's building class, when it had one."""
+    a, p = report.get("buildings_vs_provider_area"), report.get("buildings_vs_provider")
+    if not a and not p:
+        return ""
+    out = []
+    if a:
+        out.append("<h3>Against the provider's building points, by area and by building</h3>")
+        head = ["measure", "completeness %", "correctness %", "quality %"]
+        rows = [
+            "<tr><td class=l>area (cells of " + fmt_m(a.get("cell"), " m") + ")</td>"
+            + "".join(_td(fmt_pct(a.get(k)), a.get(k)) for k in ("completeness", "correctness", "quality")) + "</tr>",
+            "<tr><td class=l>buildings (objects)</td>"
+            + "".join(_td(fmt_pct(a.get(k)), a.get(k))
+                      for k in ("object_completeness", "object_correctness", "object_quality")) + "</tr>",
+        ]
+        out.append(_table(head, rows, cls="detection"))
+        out.append(_kv([
+            ("reference buildings / detected", f"{_fmt_int(a.get('n_reference'))} / {_fmt_int(a.get('n_detected'))}"),
+            ("reference found / detected correct", f"{_fmt_int(a.get('n_found'))} / {_fmt_int(a.get('n_correct'))}"),
+            ("reference area / detected / overlap (m²)",
+             " / ".join(_fmt_area(a.get(k)) for k in ("reference_area", "detected_area", "overlap_area"))),
+            ("outline distance RMS / mean / max (m)",
+             " / ".join(fmt_m(a.get(k)) for k in ("outline_rms", "outline_mean", "outline_max"))),
+            ("outline samples far off %", fmt_pct(a.get("outline_far_percent"))),
+            ("vegetation points labelled building %", fmt_pct(a.get("vegetation_as_building_percent"))),
+        ]))
+    if p:
+        out.append("<h3>Against the provider's building points, point by point</h3>")
+        out.append(_kv([("provider building points", _fmt_int(p.get("reference_building_points"))),
+                        ("completeness %", fmt_pct(p.get("completeness_percent"))),
+                        ("correctness %", fmt_pct(p.get("correctness_percent")))]))
+    out.append("<p class=small>Completeness: share of the reference found; correctness: share of the detection that "
+               "is right; quality: overlap over union.</p>")
+    return "".join(out)
+
+
+def _fmt_area(v) -> str:
+    return f"{v:,.1f}" if _finite(v) else NA
+
+
+# --------------------------------------------------------------------------- stereo
+
+
+def _stereo_section(stereo: dict | None) -> str:
+    """Frame stereo: the candidate and matched pairs and their self-check; satellite: its tiles."""
+    if not stereo:
+        return ""
+    if "tiles" in stereo:
+        return _satellite_section(stereo)
+    out = []
+    candidates = stereo.get("candidates") or []
+    if candidates:
+        rows = [f"<tr>{_td(html.escape(c['pair']), c['pair'], 'l')}{_td(fmt_m(c.get('base_to_height')), c.get('base_to_height'))}"
+                f"{_td(fmt_pct(100 * c['overlap']) if _finite(c.get('overlap')) else NA, c.get('overlap'))}"
+                f"{_td(_fmt_int(c.get('common_points')), c.get('common_points'))}"
+                f"{_td('yes' if c.get('used') else 'no', int(bool(c.get('used'))))}</tr>" for c in candidates]
+        out.append("<h3>Image pairs considered</h3>"
+                   + _table(["pair", "base / height", "overlap %", "common sparse points", "matched"], rows))
+    pairs = stereo.get("pairs") or []
+    if pairs:
+        rows = []
+        for p in pairs:
+            c, vp = p.get("self_check") or {}, p.get("vertical_parallax_px") or {}
+            span = (p.get("matching") or {}).get("disparity_range_searched", p.get("disparity_range", {})).get("value")
+            rows.append(
+                "<tr class=pair>" + _td(html.escape(p["pair"]), p["pair"], "l")
+                + _td(html.escape(str((p.get("matching") or {}).get("engine", NA))), None, "l")
+                + _td(f"{span[0]} … {span[1]}" if span else NA)
+                + _td(fmt_m(vp.get("median")), vp.get("median")) + _td(fmt_m(vp.get("p90")), vp.get("p90"))
+                + _td(fmt_pct(p.get("matched_percent")), p.get("matched_percent"))
+                + _td(fmt_pct(c.get("coverage_percent")), c.get("coverage_percent"))
+                + _td(fmt_m(c.get("discrepancy_m")), c.get("discrepancy_m"))
+                + _td(fmt_m(c.get("discrepancy_p90_m")), c.get("discrepancy_p90_m"))
+                + _td(fmt_m(c.get("discrepancy_gsd")), c.get("discrepancy_gsd"))
+                + _td(fmt_m(c.get("reprojection_px")), c.get("reprojection_px"))
+                + _td(fmt_pct(p.get("fused_share_percent")), p.get("fused_share_percent")) + "</tr>")
+        head = ["pair", "matcher", "disparities searched (px)", "vertical parallax median (px)", "p90 (px)",
+                "matched % of overlap", "sparse points covered %", "distance to sparse points median (m)",
+                "p90 (m)", "median in GSD", "reprojection p95 (px)", "share of the cloud %"]
+        out.append("<h3>Matched pairs and their self-check</h3>" + _table(head, rows))
+    gsd = stereo.get("ground_sample_distance")
+    facts = [("pairs matched", _fmt_int(stereo.get("pair_count", len(pairs)))),
+             ("ground sample distance (m)", fmt_m(gsd)), ("points in the fused cloud", _fmt_int(stereo.get("points")))]
+    area = stereo.get("common_area")
+    if area:
+        facts += [("area both images of a pair see (m²)", _fmt_area(area.get("area_m2"))),
+                  ("of it filled in the DSM %", fmt_pct(area.get("filled_percent"))),
+                  ("of it matched (not filled in) %", fmt_pct(area.get("observed_percent")))]
+    out.append(_kv(facts))
+    out.append("<p class=small>Self-check: the dense result against the pair's own sparse points (those both images "
+               "observe): covered share, height distance, and reprojection into both original images.</p>")
+    return "".join(out)
+
+
+def _satellite_section(stereo: dict) -> str:
+    """Satellite pair: the tie points, each tile's searched heights and why, bias, share matched, or why it failed."""
+    tiles = stereo["tiles"]
+    head = ["tile", "core (px)", "heights searched (m)", "from", "bias (px)", "vertical parallax median (px)",
+            "matched % of overlap", "points", "status"]
+    rows = []
+    for t in tiles.get("per_tile", []):
+        lo, hi = t["search_heights_m"]
+        vp = (t.get("vertical_parallax_px") or {}).get("median")
+        rows.append("<tr class=tile>" + _td(html.escape(str(t["tile"])), str(t["tile"]), "l")
+                    + _td(html.escape(_short(t.get("core"))), None, "l") + _td(f"{lo:.1f} … {hi:.1f}", lo)
+                    + _td(html.escape(str(t.get("search_from", NA))), None, "l")
+                    + _td(html.escape(", ".join(fmt_m(v) for v in t.get("bias_px") or []) or NA), None)
+                    + _td(fmt_m(vp), vp) + _td(fmt_pct(t.get("matched_percent")), t.get("matched_percent"))
+                    + _td(_fmt_int(t.get("points")), t.get("points")) + _td("matched", "matched", "l") + "</tr>")
+    for f in tiles.get("failures", []):
+        rows.append(f"<tr class=failed>{_td(html.escape(str(f['tile'])), str(f['tile']), 'l')}"
+                    f"{_td(html.escape(_short(f.get('core'))), None, 'l')}"
+                    f"<td class='l bad' colspan=7>failed: {html.escape(str(f.get('reason', '')))}</td></tr>")
+    ties = stereo.get("tie_points") or {}
+    check = stereo.get("self_check") or {}
+    vp = stereo.get("vertical_parallax_px") or {}
+    heights = stereo.get("tie_heights_m")
+    facts = [
+        ("SIFT tie points / on their epipolar curves",
+         f"{_fmt_int(ties.get('sift_matches'))} / {_fmt_int(ties.get('on_epipolar_curves'))} "
+         f"(within {_fmt_num(ties.get('epipolar_tolerance_px', NA))} px)"),
+        ("tie point heights (m)", f"{heights[0]:.1f} … {heights[1]:.1f}" if heights else NA),
+        ("vertical parallax median / p90 (px)", f"{fmt_m(vp.get('median'))} / {fmt_m(vp.get('p90'))}"),
+        ("affine camera residual (px)", fmt_m(stereo.get("affine_residual_px"))),
+        ("overlap matched %", fmt_pct(stereo.get("matched_percent"))),
+        ("tiles matched / failed", f"{len(tiles.get('per_tile', []))} / {len(tiles.get('failures', []))}"),
+    ]
+    if check.get("tie_points"):
+        facts += [("self-check: tie points", _fmt_int(check["tie_points"])),
+                  ("self-check: dense minus SIFT disparity, median (px / m)",
+                   f"{fmt_m(check.get('median_px'))} / {fmt_m(check.get('median_m'))}"),
+                  ("self-check: within 1 px %", fmt_pct(check.get("within_1px_percent")))]
+    return (f"<h3>Satellite pair</h3>{_kv(facts)}<h3>Tiles</h3>{_table(head, rows, cls='tiles')}"
+            "<p class=small>The unmatched rest of the overlap is filled in for the DSM only: no DTM and no building "
+            "comes from it.</p>")
+
+
+def _short(v) -> str:
+    if isinstance(v, list | tuple):
+        return ", ".join(_short(x) for x in v)
+    return _fmt_num(v) if _finite(v) else str(v if v is not None else NA)
+
+
+# --------------------------------------------------------------------------- maps
+
+
+def _crs_label(run: dict) -> str:
+    inputs = run.get("inputs", {})
+    unit = inputs.get("units", {}).get("horizontal", "metre")
+    return f"{inputs.get('crs') or '?'}, {'m' if unit == 'metre' else unit}"
+
+
+def _metres_per_unit(run: dict) -> tuple[float, float]:
+    u = run.get("inputs", {}).get("units", {})
+    return float(u.get("metres_per_unit") or 1.0), float(u.get("vertical_metres_per_unit") or 1.0)
+
+
+def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str,
+                   value_range: tuple[float, float] | None = None) -> str:
+    r = read_raster(path)
+    h_unit, v_unit = _metres_per_unit(run)
+    z = r.data.astype(float) * v_unit  # heights shown in metres
+    if not np.isfinite(z).any():
+        return f"<p class=small>{title}: no data.</p>"
+    lo, hi = value_range or tuple(np.nanpercentile(z, [1, 99]))
+    bounds = _bounds(r)
+    frame = maps.MapFrame.fit(bounds)
+    rgba = maps.shaded_relief(z, r.resolution * h_unit, lo, hi, cmap, maps.resample_factor(z.shape, frame))
+    legend = maps.colour_bar(frame, lo, hi, cmap, title, key=path.stem)
+    return maps.figure_html(maps.png_uri(rgba), f"{title} map", frame, bounds, key=path.stem, crs_label=_crs_label(run),
+                            metres_per_unit=h_unit, legend=legend, caption=caption)
+
+
+def _bounds(r) -> tuple[float, float, float, float]:
+    t = r.transform
+    rows, cols = r.data.shape
+    xs, ys = (t.c, t.c + t.a * cols), (t.f, t.f + t.e * rows)
+    return min(xs), min(ys), max(xs), max(ys)
+
+
+def _surfaces_section(out_dir: Path, run: dict) -> str:
+    """DSM, DTM (each tinted over its own 1-99 % height range) and nDSM (from 0)."""
+    note = f"Hillshade from the north-west, tinted by height; {maps.NODATA_NOTE}."
     figures = []
-    for name, title in (("dsm", "DSM"), ("dtm", "DTM"), ("model_dsm", "model DSM")):
+    for name, title, cmap, caption in (
+        ("dsm", "DSM height (m)", "terrain", "DSM: the highest surface (roofs, trees, ground). "),
+        ("dtm", "DTM height (m)", "terrain", "DTM: the bare ground. "),
+        ("ndsm", "height above ground (m)", "height", "nDSM: DSM minus DTM. "),
+    ):
         path = out_dir / f"{name}.tif"
-        if path.exists():
-            r = read_raster(path)
-            figures.append(f"<figure><img alt='{title} hillshade' src='{_png(hillshade(r.data.astype(float), r.resolution))}'>"
-                           f"<figcaption>{title} (hillshade)</figcaption></figure>")
-    return f"<h2>Surfaces</h2><div class=grid>{''.join(figures)}</div>" if figures else ""
+        if not path.exists():
+            continue
+        value_range = None
+        if cmap == "height":
+            z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
+            top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
+            value_range = (0.0, max(top, 1.0))
+        figures.append(f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
+                       + _raster_figure(path, run, title, cmap, caption + note, value_range))
+    return "".join(figures)
 
 
-def _png(image: np.ndarray, max_width: int = 800) -> str:
-    if image.shape[1] > max_width:
-        scale = max_width / image.shape[1]
-        image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    ok, data = cv2.imencode(".png", image)
-    return "data:image/png;base64," + base64.b64encode(data.tobytes()).decode()
+# --------------------------------------------------------------------------- buildings
 
 
-def _buildings_section(out_dir: Path, report: dict) -> str:
-    b = report.get("buildings", {})
-    rows = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("statuses", {}).items())
-    rows += "".join(f"<tr><td class=l>reason: {html.escape(k)}</td><td>{v}</td></tr>" for k, v in b.get("reasons", {}).items())
-    lods = b.get("lods", {})
-    rows += "".join(f"<tr><td class=l>LoD {html.escape(k)}</td><td>{v}</td></tr>" for k, v in lods.items())
-    if b.get("blocks"):
-        rows += f"<tr><td class=l>blocks of BuildingParts</td><td>{b['blocks']}</td></tr>"
-    table = f"<table><tr><th class=l>buildings</th><th>{b.get('count', 0)}</th></tr>{rows}</table>"
-    return f"<h2>Buildings</h2>{table}{_map_svg(out_dir / 'footprints.geojson')}"
-
-
-def _map_svg(path: Path, size: int = 600) -> str:
+def _building_rows(out_dir: Path) -> list[dict]:
+    """One dict per building: the footprint's properties, its rings and its CityJSON object."""
+    path = out_dir / "footprints.geojson"
     if not path.exists():
-        return ""
+        return []
     features = json.loads(path.read_text(encoding="utf-8")).get("features", [])
-    rings = [(f["properties"], np.asarray(f["geometry"]["coordinates"][0], float)) for f in features if f.get("geometry")]
-    if not rings:
+    parents, lods = _cityjson_links(out_dir / "buildings.city.json")
+    rows = []
+    for f in features:
+        geom = f.get("geometry") or {}
+        polygons = geom.get("coordinates", []) if geom.get("type") == "MultiPolygon" else [geom.get("coordinates", [])]
+        p = dict(f.get("properties") or {})
+        p["rings"] = [np.asarray(ring, float)[:, :2] for poly in polygons for ring in poly if len(ring) >= 3]
+        p["parent"] = parents.get(p.get("id"))
+        p["lods"] = lods.get(p.get("id")) or ([p["lod"]] if p.get("lod") else [])
+        rows.append(p)
+    return rows
+
+
+def _cityjson_links(path: Path) -> tuple[dict, dict]:
+    """(BuildingPart id -> its Building id, object id -> its LoDs) from the CityJSON, if there."""
+    if not path.exists():
+        return {}, {}
+    objects = json.loads(path.read_text(encoding="utf-8")).get("CityObjects", {})
+    parents = {k: o["parents"][0] for k, o in objects.items() if o.get("type") == "BuildingPart" and o.get("parents")}
+    lods = {k: sorted({str(g.get("lod")) for g in o.get("geometry", [])}, key=float) for k, o in objects.items()}
+    return parents, lods
+
+
+def _building_count(summary: dict, rows: list[dict]) -> dict:
+    """The one building count: footprints, each with its own solid or reason; the CityJSON
+    holds a block of them as one Building with BuildingParts."""
+    n = summary.get("count", len(rows))
+    parts = sum(r.get("parent") is not None for r in rows)
+    blocks = len({r["parent"] for r in rows if r.get("parent")}) or summary.get("blocks", 0)
+    with_solid = summary.get("with_solid", sum(r.get("status") != "no_solid" and bool(r.get("lod")) for r in rows))
+    return {"buildings": n, "with_solid": with_solid, "parts": parts, "blocks": blocks,
+            "cityjson_buildings": n - parts + blocks}
+
+
+def _buildings_section(out_dir: Path, run: dict, report: dict, rows: list[dict]) -> str:
+    summary = report.get("buildings", {})
+    c = _building_count(summary, rows)
+    definition = (f"<p id=building-count><b>{c['buildings']} buildings</b>, one per footprint: "
+                  f"{c['with_solid']} with a solid, {c['buildings'] - c['with_solid']} without. "
+                  f"In buildings.city.json they are <b>{c['cityjson_buildings']} Building</b> objects and "
+                  f"<b>{c['parts']} BuildingPart</b> objects: ")
+    if c["parts"]:
+        definition += (f"{c['buildings'] - c['parts']} stand alone, and {c['parts']} adjoining buildings of different "
+                       f"heights form {c['blocks']} block(s), each a Building holding them as BuildingParts.</p>")
+    else:
+        definition += "every building stands alone.</p>"
+    facts = [(f"status {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("statuses", {}).items()]
+    facts += [(f"LoD {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("lods", {}).items()]
+    facts += [(f"reason {html.escape(k)}", _fmt_int(v)) for k, v in summary.get("reasons", {}).items()]
+    if c["blocks"]:
+        facts.append(("blocks of BuildingParts", _fmt_int(c["blocks"])))
+    return (definition + _kv(facts) + _building_map(out_dir, run, rows) + "<h3>Every building</h3>"
+            + _building_table(rows))
+
+
+def _building_map(out_dir: Path, run: dict, rows: list[dict]) -> str:
+    dsm_path = out_dir / "dsm.tif"
+    if not rows or not dsm_path.exists():
         return ""
-    allxy = np.concatenate([r for _, r in rings])
-    lo, hi = allxy.min(axis=0), allxy.max(axis=0)
-    scale = size / max(float(np.max(hi - lo)), 1e-9)
-    shapes = []
-    for props, ring in rings:
-        pts = " ".join(f"{(x - lo[0]) * scale:.1f},{(hi[1] - y) * scale:.1f}" for x, y in ring)
-        err = props.get("roof_rms_m")
-        color = "#999" if err is None else _error_color(float(err))
-        label = html.escape(f"{props.get('id')}: {props.get('status')} {props.get('reason') or ''} roof RMS {err}")
-        shapes.append(f'<polygon points="{pts}" fill="{color}" stroke="#333" stroke-width="0.5"><title>{label}</title></polygon>')
-    h = (hi[1] - lo[1]) * scale
-    legend = "<p class=small>Buildings coloured by roof RMS of the model against the measured DSM: green 0 m, red ≥ 2 m, grey no solid.</p>"
-    return f'{legend}<svg width="{size}" height="{h:.0f}" role="img" aria-label="buildings map">{"".join(shapes)}</svg>'
+    r = read_raster(dsm_path)
+    h_unit, v_unit = _metres_per_unit(run)
+    bounds = _bounds(r)
+    frame = maps.MapFrame.fit(bounds)
+    z = r.data.astype(float) * v_unit
+    base = maps.shaded_relief(z, r.resolution * h_unit, 0, 1, None, maps.resample_factor(z.shape, frame))
+    heights = [b.get("height_m") for b in rows if _finite(b.get("height_m"))]
+    top = max(nice_ceiling(max(heights)) if heights else 10.0, 1.0)
+    shapes, labels = [], []
+    for b in rows:
+        if not b["rings"]:
+            continue
+        d = " ".join("M" + " L".join(f"{x:.1f} {y:.1f}" for x, y in zip(*frame.px(ring[:, 0], ring[:, 1]), strict=True))
+                     + " Z" for ring in b["rings"])
+        h = b.get("height_m")
+        solid = b.get("status") != "no_solid" and bool(b.get("lod"))
+        if solid and _finite(h):
+            fill = "rgb({},{},{})".format(*maps.colorize(np.array(h), 0.0, top, "height"))
+        else:
+            fill = "url(#hatch)"
+        dash = ' stroke-dasharray="5 3" style="stroke:#d35400"' if b.get("status") == "fallback" else ""
+        tip = (f"{b.get('id')}: {b.get('status')}{' (' + b['reason'] + ')' if b.get('reason') else ''}, "
+               f"LoD {', '.join(b['lods']) or NA}, height {fmt_m(h, ' m')}, roof RMS {fmt_m(b.get('roof_rms_m'), ' m')}")
+        bid = html.escape(str(b.get("id")))
+        shapes.append(f'<path data-b="{bid}" d="{d}" fill="{fill}" fill-opacity=".82"{dash}><title>{html.escape(tip)}</title></path>')
+        if len(rows) <= 80:
+            outer = b["rings"][0]
+            px, py = frame.px(*_label_point(outer))
+            labels.append(f'<text x="{px:.1f}" y="{py + 3:.1f}" text-anchor=middle>{bid}</text>')
+    legend = maps.colour_bar(frame, 0.0, top, "height", "building height (m)", key="bldg", nodata=False)
+    y = 20 + min(frame.height - 70, 260) + 16
+    x = frame.width + 18
+    legend += (f'<path d="M{x} {y} h16 v12 h-16 Z" fill="none" stroke="#d35400" stroke-dasharray="5 3" stroke-width="1.4"/>'
+               f'<text class=tl x="{x + 22}" y="{y + 10}">fallback</text>'
+               f'<rect x="{x}" y="{y + 20}" width="16" height="12" fill="url(#hatch)" stroke="#1b1b1b"/>'
+               f'<text class=tl x="{x + 22}" y="{y + 30}">no solid</text>')
+    overlay = f'<g class=bldg>{"".join(shapes)}{"".join(labels)}</g>'
+    caption = ("Footprints over the DSM hillshade, coloured by building height (roof top above ground); courtyards are "
+               "holes. Dashed orange: LoD1.3 fallback; hatched: no solid. Hover a building for its figures, click it "
+               "to find its row in the table.")
+    return maps.figure_html(maps.png_uri(base), "buildings map", frame, bounds, key="bldg", crs_label=_crs_label(run),
+                            metres_per_unit=h_unit, legend=legend, overlay=overlay, caption=caption)
 
 
-def _error_color(err: float) -> str:
-    t = min(max(err / 2.0, 0.0), 1.0)
-    return f"rgb({int(40 + 200 * t)},{int(180 - 140 * t)},60)"
+def nice_ceiling(v: float) -> float:
+    """The next 1, 2 or 5 x 10^k step at or above ``v`` (a colour bar's top)."""
+    step = maps.nice_step(v, 5)
+    return float(np.ceil(v / step) * step)
 
 
-def _changes_section(report: dict) -> str:
-    c = report.get("changes")
+def _label_point(ring: np.ndarray) -> tuple[float, float]:
+    """A point inside the ring for its label (shapely's representative point)."""
+    import shapely
+
+    p = shapely.Polygon(ring).representative_point()
+    return p.x, p.y
+
+
+def _building_table(rows: list[dict]) -> str:
+    head = ["id", "CityJSON", "LoD", "roof type", "roof planes", "ground z (m)", "roof z (m)", "height (m)",
+            "area (m²)", "roof RMS (m)", "status", "fallback reason"]
+    body = []
+    for b in rows:
+        bid = str(b.get("id"))
+        cityjson = f"BuildingPart of {b['parent']}" if b.get("parent") else "Building"
+        status = str(b.get("status") or NA)
+        cells = [
+            _td(html.escape(bid), bid, "l"), _td(html.escape(cityjson), cityjson, "l"),
+            _td(html.escape(", ".join(b["lods"])) or NA, b["lods"][-1] if b["lods"] else None),
+            _td(html.escape(str(b.get("roof_type") or NA)), b.get("roof_type") or None, "l"),
+            _td(_fmt_int(b.get("roof_planes")), b.get("roof_planes")),
+            _td(fmt_m(b.get("ground_z")), b.get("ground_z")), _td(fmt_m(b.get("roof_z")), b.get("roof_z")),
+            _td(fmt_m(b.get("height_m")), b.get("height_m")), _td(_fmt_area(b.get("area")), b.get("area")),
+            _td(fmt_m(b.get("roof_rms_m")), b.get("roof_rms_m")),
+            _td(html.escape(status), status, {"ok": "l", "fallback": "l fallback"}.get(status, "l bad")),
+            _td(html.escape(str(b.get("reason") or "")) or "–", b.get("reason") or None, "l"),
+        ]
+        body.append(f'<tr id="row-{html.escape(bid)}" data-b="{html.escape(bid)}">{"".join(cells)}</tr>')
+    return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11})
+            + "<p class=small>Click a column to sort. Heights: ground z and roof z in the CRS's vertical reference; "
+            "height is the roof top above ground. Roof RMS: the model DSM against the measured DSM on the building's "
+            "cells.</p>")
+
+
+# --------------------------------------------------------------------------- changes, timings, parameters
+
+
+def _changes_section(c: dict | None) -> str:
     if not c:
         return ""
-    rows = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v}</td></tr>" for k, v in c["summary"].items())
+    rows = [(html.escape(k), _fmt_num(v) if _finite(v) else html.escape(str(v))) for k, v in c["summary"].items()]
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in c.get("notes", []))
-    return f"<h2>Changes against the older building database</h2><table>{rows}</table><ul class=small>{notes}</ul>"
+    return f"<h3>Changes against the older building database</h3>{_kv(rows)}<ul class=small>{notes}</ul>"
 
 
 def _timings_section(run: dict) -> str:
-    t = run.get("timings_s", {})
-    rows = "".join(f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td></tr>" for k, v in t.items())
-    return f"<h2>Timings (s)</h2><table>{rows}<tr><th class=l>total</th><th>{sum(t.values()):.2f}</th></tr></table>"
+    """Seconds per stage, leaving out the stages that do not apply to the run."""
+    inputs = run.get("inputs", {})
+    skip = set()
+    if str(inputs.get("kind", "")).startswith("point cloud"):
+        skip.add("stereo")
+    if not inputs.get("old_buildings"):
+        skip.add("change")
+    t = {k: v for k, v in run.get("timings_s", {}).items() if k not in skip}
+    if not t:
+        return ""
+    total = sum(t.values())
+    rows = [f"<tr><td class=l>{html.escape(k)}</td><td>{v:.2f}</td><td class=l>"
+            f'<svg width="160" height="10"><rect width="{160 * v / max(total, 1e-9):.1f}" height="10" fill="#4a7ebb"/></svg>'
+            "</td></tr>" for k, v in t.items()]
+    rows.append(f"<tr><th class=l>total</th><th>{total:.2f}</th><th></th></tr>")
+    return _table(["stage", "seconds", "share"], rows, left={0, 2})
 
 
 def _parameters_section(run: dict) -> str:
     rows = []
-    for key, value in _flatten(run.get("chosen", {})):
-        rows.append(f"<tr><td class=l>{html.escape(key)}</td><td class=l>{html.escape(str(value))}</td></tr>")
-    return f"<h2>Parameters chosen from the data</h2><table>{''.join(rows)}</table>"
+    for key, value, unit, reason in _flatten({k: v for k, v in run.get("chosen", {}).items() if k != "stereo"}):
+        shown = _short(value) + (f" {html.escape(_unit(unit))}" if unit else "")
+        rows.append(f"<tr><td class=l>{html.escape(key)}</td><td>{shown}</td><td class=l>{html.escape(reason)}</td></tr>")
+    if not rows:
+        return ""
+    return (_table(["parameter", "value", "why"], rows, cls="parameters", left={0, 2})
+            + "<p class=small>Every setting left unset, chosen from the data (run.json <code>chosen</code>).</p>")
+
+
+def _unit(unit: str) -> str:
+    return {"metre": "m", "metres": "m", "foot": "ft", "US survey foot": "US ft"}.get(unit, unit)
 
 
 def _flatten(d: dict, prefix: str = ""):
+    """(key, value, unit, reason) of each chosen parameter, nested keys joined by dots."""
     for k, v in d.items():
         key = f"{prefix}{k}"
         if isinstance(v, dict) and "value" in v:
-            yield key, f"{v['value']} — {v.get('reason', '')}"
+            yield key, v["value"], v.get("unit", ""), str(v.get("reason", ""))
         elif isinstance(v, dict):
             yield from _flatten(v, key + ".")
         elif not isinstance(v, list):
-            yield key, v
+            yield key, v, "", ""
 
 
-def _fmt(v, digits: int = 3) -> str:
-    return "–" if v is None else f"{v:.{digits}f}"
+def _footer(run: dict) -> str:
+    versions = ", ".join(f"{k} {v}" for k, v in run.get("versions", {}).items())
+    return (f"<footer>recon3d {html.escape(run.get('recon3d', ''))}; {html.escape(versions)}. "
+            "This report is self-contained: it needs no network.</footer>")
