@@ -127,8 +127,8 @@ def ground_layer(out_dir: Path, origin: np.ndarray) -> dict | None:
         log.warning("%s: no ortho.tif nor dsm.tif: the buildings are shown without ground", out_dir)
         return None
     rows, cols = image.shape[:2]
-    west, north = transform * (0, 0)
-    east, south = transform * (cols, rows)
+    west, north = transform.c, transform.f  # north-up grids, as recon3d writes them
+    east, south = west + cols * transform.a, north + rows * transform.e
     heights_path = out_dir / "dtm.tif" if (out_dir / "dtm.tif").is_file() else dsm
     z = _heights(read_raster(heights_path), (west, south, east, north)) - origin[2]
     return {
@@ -177,9 +177,8 @@ def _heights(raster, extent) -> np.ndarray:
     cols = max(2, int(np.ceil((east - west) / step)) + 1)
     rows = max(2, int(np.ceil((north - south) / step)) + 1)
     x, y = np.meshgrid(np.linspace(west, east, cols), np.linspace(north, south, rows))
-    col, row = ~raster.transform * (x, y)
-    row = np.clip(np.floor(row).astype(int), 0, raster.shape[0] - 1)
-    col = np.clip(np.floor(col).astype(int), 0, raster.shape[1] - 1)
+    row, col = raster.rowcol(x, y)
+    row, col = np.clip(row, 0, raster.shape[0] - 1), np.clip(col, 0, raster.shape[1] - 1)
     data = raster.data.astype(float)
     empty = ~np.isfinite(data)
     if empty.all():
