@@ -89,6 +89,8 @@ def test_refuses_a_folder_that_is_not_a_finished_run(tmp_path):
     assert f"{tmp_path}: not a finished recon3d run: buildings.glb missing" in result.output, result.output
     result = runner.invoke(cli, ["view", str(tmp_path / "nowhere"), "--no-browser"])
     assert result.exit_code == 1 and "no such folder" in result.output, result.output
+    result = runner.invoke(cli, ["view", str(tmp_path / "run.json"), "--no-browser"])
+    assert result.exit_code == 1 and "run.json: not a folder" in result.output, result.output
 
 
 def test_ground_is_the_dsm_hillshade_on_the_dtm_in_the_glb_frame(delft_run):
@@ -113,6 +115,30 @@ def test_ground_is_the_dsm_hillshade_on_the_dtm_in_the_glb_frame(delft_run):
     scale = min(1.0, 2048 / max(dsm.shape))
     assert texture.shape[:2] == (round(dsm.shape[0] * scale), round(dsm.shape[1] * scale))
     assert files["/run/buildings.glb"][0] == (out / "buildings.glb").read_bytes()
+
+
+def test_orthophoto_replaces_the_hillshade(delft_run, tmp_path):
+    import rasterio
+    from affine import Affine
+
+    for name in ("buildings.glb", "run.json", "dtm.tif"):
+        shutil.copy(delft_run.out_dir / name, tmp_path / name)
+    dtm = read_raster(tmp_path / "dtm.tif")
+    west, _, _, north = dtm.bounds
+    rgb = np.zeros((3, 40, 60), np.uint8)
+    rgb[0, :20], rgb[1, 20:], rgb[2, :, :30] = 200, 150, 100  # red north, green south, blue west
+    profile = {"driver": "GTiff", "width": 60, "height": 40, "count": 3, "dtype": "uint8", "crs": "EPSG:28992",
+               "transform": Affine(2.0, 0.0, west + 10, 0.0, -2.0, north - 10)}
+    with rasterio.open(tmp_path / "ortho.tif", "w", **profile) as dst:
+        dst.write(rgb)
+    files = site_files(tmp_path)
+    ground = json.loads(files["/run/scene.json"][0])["ground"]
+    origin = json.loads((tmp_path / "run.json").read_text(encoding="utf-8"))["local_frame_origin"]
+    assert ground["kind"] == "orthophoto"
+    np.testing.assert_allclose(ground["extent"], [west + 10 - origin[0], north - 90 - origin[1],
+                                                  west + 130 - origin[0], north - 10 - origin[1]])
+    texture = cv2.imdecode(np.frombuffer(files["/run/ground.png"][0], np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    np.testing.assert_array_equal(texture, np.moveaxis(rgb, 0, -1))
 
 
 def test_serves_only_the_prepared_files(served):

@@ -17,6 +17,7 @@ import errno
 import json
 import logging
 import struct
+import threading
 import webbrowser
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -53,7 +54,8 @@ def check_run(out_dir: str | Path) -> Path:
     """``out_dir`` as a Path; :class:`InputError` naming what is missing when it is not a finished run."""
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
-        raise InputError(f"{out_dir}: no such folder (give the output folder of `recon3d run`)")
+        problem = "not a folder" if out_dir.exists() else "no such folder"
+        raise InputError(f"{out_dir}: {problem} (give the output folder of `recon3d run`)")
     missing = [name for name in REQUIRED if not (out_dir / name).is_file()]
     if missing:
         raise InputError(f"{out_dir}: not a finished recon3d run: {' and '.join(missing)} missing")
@@ -254,10 +256,19 @@ def start_server(out_dir: str | Path, port: int | None = None) -> ViewerServer:
 
 
 def serve(server: ViewerServer, *, open_browser: bool = True) -> None:
-    """Serve until Ctrl-C (or SIGTERM raised as an exception), then close the socket."""
+    """Serve until Ctrl-C (or SIGTERM raised as an exception), then close the socket.
+
+    The browser is started from a thread: a console browser (lynx, w3m) blocks until
+    it quits, and the server must answer it meanwhile.
+    """
+    if open_browser:
+        threading.Thread(target=_open_browser, args=(server.url,), daemon=True).start()
     try:
-        if open_browser:
-            webbrowser.open(server.url)
         server.serve_forever()
     finally:
         server.server_close()
+
+
+def _open_browser(url: str) -> None:
+    if not webbrowser.open(url):
+        log.warning("no web browser found: open %s yourself", url)
