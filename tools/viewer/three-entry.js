@@ -1,7 +1,7 @@
 // The parts of three.js the run viewer (recon3d/viewer/static/viewer.js) uses, bundled
 // into one minified ES module by `npm run build-viewer --prefix tools`.
 export {
-  Box3, Color, DirectionalLight, HemisphereLight, Mesh,
+  Box3, Color, DirectionalLight, DoubleSide, HemisphereLight, Mesh,
   MeshBasicMaterial, MeshLambertMaterial, PerspectiveCamera, PlaneGeometry, Raycaster,
   SRGBColorSpace, Scene, TextureLoader, Vector2, Vector3, WebGLRenderer,
 } from "three";

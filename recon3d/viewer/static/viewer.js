@@ -3,7 +3,7 @@
 // building's attributes. Everything is in the GLB's local frame (Y up, north is -Z).
 // Test hook: window.recon3dViewer.
 import {
-  Box3, Color, DirectionalLight, GLTFLoader, HemisphereLight, Mesh, MeshBasicMaterial,
+  Box3, Color, DirectionalLight, DoubleSide, GLTFLoader, HemisphereLight, Mesh, MeshBasicMaterial,
   MeshLambertMaterial, OrbitControls, PerspectiveCamera, PlaneGeometry, Raycaster,
   SRGBColorSpace, Scene, TextureLoader, Vector2, Vector3, WebGLRenderer,
 } from "./three.min.js";
@@ -11,7 +11,7 @@ import {
 const LOD_COLOURS = { "1": "#7fa8d1", "1.2": "#8fc1a9", "1.3": "#f0b45b", "2.2": "#d98a6c" };
 const NO_VALUE = "#9e9e9e";
 const NOT_OK = "#9c5fc9";
-const RMS_RED = 2.0; // metres of roof RMS drawn fully red, as in report.html's map
+const RMS_RED = 2.0; // metres of roof RMS drawn fully red, the scale of report.html's map
 const RAMP = ["#2ca25f", "#f0c419", "#d7301f"].map((c) => new Color(c)); // 0, RMS_RED / 2, RMS_RED
 const SELECTED = "#00c8ff";
 
@@ -40,7 +40,9 @@ async function loadBuildings() {
   const gltf = await new GLTFLoader().loadAsync("run/buildings.glb");
   gltf.scene.traverse((object) => {
     if (object.isMesh && object.userData.id !== undefined) {
-      object.material = new MeshLambertMaterial({ flatShading: true });
+      // Surfaces read from another tool (MultiSurface) may not close: show their backs too.
+      const side = object.userData.geometry_type === "MultiSurface" ? DoubleSide : undefined;
+      object.material = new MeshLambertMaterial({ flatShading: true, side });
       byId.set(String(object.userData.id), object);
     }
   });
