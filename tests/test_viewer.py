@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import selectors
 import shutil
 import signal
 import socket
@@ -159,6 +160,9 @@ def test_busy_port_is_replaced_and_ctrl_c_stops(delft_run):
         view = subprocess.Popen([sys.executable, "-m", "recon3d", "view", str(delft_run.out_dir), "--port", str(port),
                                  "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         try:
+            with selectors.DefaultSelector() as waiting:  # the first line, or fail rather than hang
+                waiting.register(view.stdout, selectors.EVENT_READ)
+                assert waiting.select(timeout=120), "recon3d view printed nothing"
             line = view.stdout.readline()
             assert line.startswith(f"serving {delft_run.out_dir} at http://127.0.0.1:"), line
             url = line.split(" at ")[1].split()[0]
@@ -190,9 +194,9 @@ def test_three_bundle_is_the_pinned_build(tmp_path):
 
 @pytest.mark.slow
 def test_page_draws_the_buildings_and_a_click_shows_the_id(delft_run, served):
+    browser = _chromium()
     from playwright.sync_api import sync_playwright
 
-    browser = _chromium()
     extras = _building_extras(delft_run.out_dir)
     lods = {lod: sum(e["lod"] == lod for e in extras.values()) for lod in {e["lod"] for e in extras.values()}}
     with sync_playwright() as p:
