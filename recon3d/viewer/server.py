@@ -115,11 +115,15 @@ def ground_layer(out_dir: Path, origin: np.ndarray) -> dict | None:
     dict or None
         ``kind`` ("orthophoto" or "hillshade"), ``png`` (bytes), ``extent`` [west, south,
         east, north] local, ``heights`` {``rows``, ``cols``, ``z``: rows*cols local
-        heights, row-major}; None when the run has neither raster.
+        heights, row-major}; None when the run has no texture or no heights.
     """
     from recon3d.io.geotiff import read_raster
 
-    ortho, dsm = out_dir / "ortho.tif", out_dir / "dsm.tif"
+    ortho, dsm, dtm = out_dir / "ortho.tif", out_dir / "dsm.tif", out_dir / "dtm.tif"
+    heights_path = next((p for p in (dtm, dsm) if p.is_file()), None)
+    if heights_path is None:
+        log.warning("%s: no dtm.tif nor dsm.tif: the buildings are shown without ground", out_dir)
+        return None
     if ortho.is_file():
         image, transform, kind = *_read_rgb(ortho), "orthophoto"
     elif dsm.is_file():
@@ -131,7 +135,6 @@ def ground_layer(out_dir: Path, origin: np.ndarray) -> dict | None:
     rows, cols = image.shape[:2]
     west, north = transform.c, transform.f  # north-up grids, as recon3d writes them
     east, south = west + cols * transform.a, north + rows * transform.e
-    heights_path = out_dir / "dtm.tif" if (out_dir / "dtm.tif").is_file() else dsm
     z = _heights(read_raster(heights_path), (west, south, east, north)) - origin[2]
     return {
         "kind": kind,
