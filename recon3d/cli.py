@@ -253,6 +253,33 @@ def report(out_dir):
     click.echo(f"wrote {write_report(out_dir)}")
 
 
+@cli.command()
+@click.argument("out_dir", metavar="OUT", type=click.Path(path_type=Path))
+@click.option("--port", type=click.IntRange(0, 65535), help="Port on 127.0.0.1  [default: a free one; one in use is replaced by a free one, with a warning].")
+@click.option("--no-browser", is_flag=True, help="Only serve; open the printed address yourself.")
+def view(out_dir, port, no_browser):
+    """Show the buildings of a finished run in the browser, on its hillshade (or ortho.tif).
+
+    Serves OUT on localhost (three.js is shipped with recon3d: no network needed)
+    until Ctrl-C. Buildings are coloured by LoD or by quality (roof RMS against the
+    DSM, status); a click shows a building's attributes.
+
+    \b
+    Examples
+    --------
+      recon3d view out
+      recon3d view out --port 8000 --no-browser
+    """
+    from recon3d.viewer import serve, start_server
+
+    server = start_server(out_dir, port)
+    click.echo(f"serving {out_dir} at {server.url}  (Ctrl-C to stop)")
+    try:
+        serve(server, open_browser=not no_browser)
+    except KeyboardInterrupt:
+        click.echo("stopped")
+
+
 #: File name ending of each export format.
 _EXPORT_SUFFIX = {"cityjson": ".city.json", "cityjsonseq": ".city.jsonl", "obj": ".obj", "gltf": ".gltf", "glb": ".glb",
                   "3dtiles": "_3dtiles"}
