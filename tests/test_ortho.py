@@ -120,3 +120,19 @@ def test_ortho_on_the_dtm_and_bad_settings(ortho_run):
     assert not np.array_equal(on_dtm.data, s.ortho.data)
     with pytest.raises(InputError, match="choose dsm, dtm or model"):
         PipelineConfig().with_overrides(["ortho.surface=roofs"])
+
+
+def test_report_shows_the_orthophoto_and_the_doubtful_areas(ortho_run):
+    """report.html: the orthophoto and the difference map as images, and one table row per
+    doubtful area of report.json (up to 20), with its area as report.json has it."""
+    import re
+
+    from recon3d.report import write_report
+
+    page = write_report(ortho_run.out_dir).read_text(encoding="utf-8")
+    section = page[page.index('<section id="ortho">'):]
+    section = section[:section.index("</section>")]
+    assert section.count("<img") == 2 and 'alt="orthophoto"' in section and 'alt="image difference"' in section
+    regions = ortho_run.report["ortho"]["regions"][:20]
+    rows = re.findall(r"<tr><td data-v=\"([0-9.]+)\"", section)
+    assert [float(v) for v in rows] == [r["area"] for r in regions]

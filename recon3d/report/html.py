@@ -99,6 +99,7 @@ def write_report(out_dir: str | Path) -> Path:
         ("detection", "Building detection", _detection_section(report)),
         ("stereo", "Stereo", _stereo_section(run.get("chosen", {}).get("stereo"))),
         ("surfaces", "Surfaces", _surfaces_section(out_dir, run)),
+        ("ortho", "Orthophoto and image check", _ortho_section(out_dir, run, report.get("ortho"))),
         ("buildings", "Buildings", _buildings_section(out_dir, run, report, buildings)),
         ("changes", "Changes", _changes_section(report.get("changes"))),
         ("timings", "Timings", _timings_section(run)),
@@ -464,6 +465,63 @@ def _surfaces_section(out_dir: Path, run: dict) -> str:
         figures.append(f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
                        + _raster_figure(path, run, title, cmap, caption + note, value_range))
     return "".join(figures)
+
+
+def _ortho_section(out_dir: Path, run: dict, o: dict | None) -> str:
+    """Stereo runs: the true orthophoto, the image-difference map and its doubtful areas."""
+    import cv2
+    import rasterio
+
+    path = out_dir / "ortho.tif"
+    if o is None or not path.exists():
+        return ""
+    with rasterio.open(path) as src:
+        image = src.read()
+        bounds = tuple(src.bounds)
+    frame = maps.MapFrame.fit(bounds)
+    size = (max(frame.width * 2, 1), max(frame.height * 2, 1))  # twice the display size: sharp on high-DPI screens
+    if image.dtype == np.uint8:
+        rgba = np.moveaxis(image, 0, -1)
+    else:  # panchromatic float: stretched over its 1-99 % range for display
+        grey = image[0]
+        lo, hi = np.nanpercentile(grey, [1, 99]) if np.isfinite(grey).any() else (0.0, 1.0)
+        g = np.clip((np.nan_to_num(grey, nan=lo) - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
+        rgba = np.dstack([g, g, g, np.where(np.isfinite(grey), 255, 0).astype(np.uint8)])
+    rgba = cv2.resize(np.ascontiguousarray(rgba), size, interpolation=cv2.INTER_AREA)
+    h_unit, _ = _metres_per_unit(run)
+    figures = [maps.figure_html(maps.png_uri(rgba), "orthophoto", frame, bounds, key="ortho", crs_label=_crs_label(run),
+                                metres_per_unit=h_unit, legend="",
+                                caption=f"True orthophoto on the {html.escape(o['surface'])}, {fmt_m(o['cell'])} cells: "
+                                        f"{fmt_pct(o['seen_percent'])} % of the grid seen by an image; "
+                                        "transparent where no image sees the ground.")]
+    diff_path = out_dir / "ortho_diff.tif"
+    if diff_path.exists():
+        d = read_raster(diff_path)
+        dframe = maps.MapFrame.fit(_bounds(d))
+        factor = maps.resample_factor(d.data.shape, dframe)
+        shown = cv2.resize(np.nan_to_num(d.data, nan=0.0), (max(round(d.data.shape[1] * factor), 1),
+                           max(round(d.data.shape[0] * factor), 1)), interpolation=cv2.INTER_NEAREST)
+        known = cv2.resize(np.isfinite(d.data).astype(np.uint8), shown.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        rgba = np.dstack([maps.colorize(shown, 0.0, 1.2, "height"), np.where(known > 0, 255, 0).astype(np.uint8)])
+        legend = maps.colour_bar(dframe, 0.0, 1.2, "height", "1 - NCC", key="ortho_diff")
+        figures.append(maps.figure_html(
+            maps.png_uri(rgba), "image difference", dframe, _bounds(d), key="ortho_diff", crs_label=_crs_label(run),
+            metres_per_unit=h_unit, legend=legend,
+            caption=f"How much the two images of each pair disagree once orthorectified on the DSM (1 - NCC): "
+                    f"where the DSM is right they agree. Judged on {fmt_pct(o['judged_percent'])} % of the cells "
+                    f"(the rest has no texture to compare, or one image does not see it); "
+                    f"{fmt_pct(o['doubtful_percent_of_judged'])} % of those are doubtful (above {o['threshold']:g})."))
+    rows = [_doubtful_row(r) for r in o.get("regions", [])[:20]]
+    table = (_table(["area", "centre (x, y)", "mean 1 - NCC", "buildings touched"], rows, left={1, 3})
+             if rows else "<p class=small>No doubtful area.</p>")
+    return "".join(figures) + "<h3>Doubtful areas</h3>" + table
+
+
+def _doubtful_row(region: dict) -> str:
+    x, y = region["centre"]
+    area, mean = region["area"], region["mean"]
+    touched = html.escape(", ".join(region["buildings"])) or "none"
+    return f"<tr>{_td(_fmt_area(area), area)}{_td(f'{x:.1f}, {y:.1f}')}{_td(f'{mean:.2f}', mean)}{_td(touched)}</tr>"
 
 
 # --------------------------------------------------------------------------- buildings
