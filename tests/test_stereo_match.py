@@ -244,6 +244,39 @@ def test_deterministic(engine):
         assert np.array_equal(first.confidence, other.confidence)
 
 
+_THREADS_SCRIPT = """
+import hashlib, sys
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_stereo_match import _plane_pair
+from recon3d.stereo.match import MatchParams, match
+left, right, _ = _plane_pair(150, 140, 9.3, 0.05, 0.02)
+result = match(left, right, MatchParams(max_disparity=40, strip_memory_mb=1))
+print(result.params["strips"], hashlib.sha256(result.disparity.tobytes() + result.confidence.tobytes()).hexdigest())
+"""
+
+
+def test_same_bytes_whatever_the_thread_count():
+    """The compiled census engine gives the same bytes on 1 and on 2 numba threads."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = Path(__file__).resolve().parent
+    script = _THREADS_SCRIPT.format(tests=str(tests))
+    outputs = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "NUMBA_NUM_THREADS": threads,
+               "PYTHONPATH": os.pathsep.join([str(tests.parent), os.environ.get("PYTHONPATH", "")])}
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=False)
+        assert done.returncode == 0, done.stderr[-3000:]
+        outputs.append(done.stdout.strip().splitlines()[-1])
+    strips, digest = outputs[0].split()
+    assert int(strips) > 1  # strip borders are part of what must not depend on threads
+    assert outputs[0] == outputs[1]
+
+
 # ----------------------------------------------------------------------------- bad input
 
 
