@@ -36,23 +36,29 @@ def census(padded, a, b, wy, wx):
     bit k is set where the k-th window neighbour (row-major, centre skipped) is darker
     than the centre.
     """
-    ry, rx = wy // 2, wx // 2
+    rx = wx // 2
     h, w = b - a, padded.shape[1] - 2 * rx
     out = np.zeros((h, w), np.uint64)
     for y in prange(h):
-        for x in range(w):
-            centre = padded[a + y + ry, x + rx]
-            bits = np.uint64(0)
-            bit = np.uint64(0)
-            for dy in range(wy):
-                for dx in range(wx):
-                    if dy == ry and dx == rx:
-                        continue
-                    if padded[a + y + dy, x + dx] < centre:
-                        bits |= np.uint64(1) << bit
-                    bit += np.uint64(1)
-            out[y, x] = bits
+        _census_row(padded, a + y, wy, wx, out[y])
     return out
+
+
+@njit(cache=True)
+def _census_row(padded, y, wy, wx, out):
+    ry, rx = wy // 2, wx // 2
+    w = out.shape[0]
+    centre = padded[y + ry, rx : rx + w]
+    bit = np.uint64(0)
+    for dy in range(wy):
+        for dx in range(wx):
+            if dy == ry and dx == rx:
+                continue
+            other = padded[y + dy, dx : dx + w]
+            for x in range(w):  # one neighbour for the whole row: SIMD
+                if other[x] < centre[x]:
+                    out[x] |= np.uint64(1) << bit
+            bit += np.uint64(1)
 
 
 @njit(cache=True, parallel=True)
@@ -87,20 +93,28 @@ def _cost_row(cl, cr, l8, rmin, rmax, dmin, use_bt, trunc8, weight, cap, out):
     rev_min = _reversed_padded(rmin, first, length)
     rev_max = _reversed_padded(rmax, first, length)
     for x in range(w):
+        # slices, not base + i indices: numba then knows them non-negative, and vectorises
         base = w - 1 - x
+        bits = rev_bits[base : base + ndisp]
+        r_lo = rev_min[base : base + ndisp]
+        r_hi = rev_max[base : base + ndisp]
         left_bits = cl[x]
         lv = np.int32(l8[x])
         o = out[x]
-        for i in range(ndisp):
-            o[i] = np.uint8(_popcount(left_bits ^ rev_bits[base + i]))
         if not use_bt:
-            continue
-        for i in range(ndisp):
-            bt = max(np.int32(rev_min[base + i]) - lv, lv - np.int32(rev_max[base + i]), np.int32(0))
-            bt = min(bt, trunc8)
-            if weight != 1.0:
-                bt = min(np.int32(np.rint(np.float32(bt) * weight)), np.int32(255))
-            o[i] = np.uint8(np.int32(o[i]) + min(bt, cap))
+            for i in range(ndisp):
+                o[i] = np.uint8(_popcount(left_bits ^ bits[i]))
+        elif weight == 1.0:  # the default, in a loop simple enough for SIMD
+            limit = min(trunc8, cap)
+            for i in range(ndisp):
+                bt = max(np.int32(r_lo[i]) - lv, lv - np.int32(r_hi[i]))
+                bt = min(max(bt, np.int32(0)), limit)
+                o[i] = np.uint8(np.int32(_popcount(left_bits ^ bits[i])) + bt)
+        else:
+            for i in range(ndisp):
+                bt = max(np.int32(r_lo[i]) - lv, lv - np.int32(r_hi[i]), np.int32(0))
+                bt = min(np.int32(np.rint(np.float32(min(bt, trunc8)) * weight)), np.int32(255))
+                o[i] = np.uint8(np.int32(_popcount(left_bits ^ bits[i])) + min(bt, cap))
 
 
 @njit(cache=True, parallel=True)
@@ -145,11 +159,14 @@ def _path_step(prev, prev_min, c, p1, jump, out):
     v = min(np.int32(prev[0]), np.int32(prev[1]) + p1, jump) - prev_min + np.int32(c[0])
     out[0] = np.uint16(v)
     best = min(best, v)
+    # uint16 throughout (no value goes negative or past 65535): twice the SIMD lanes of int32
+    pm, q1, jp, best16 = np.uint16(prev_min), np.uint16(p1), np.uint16(jump), np.uint16(best)
     for d in range(1, ndisp - 1):
-        v = min(np.int32(prev[d]), min(np.int32(prev[d - 1]), np.int32(prev[d + 1])) + p1, jump)
-        v = v - prev_min + np.int32(c[d])
-        out[d] = np.uint16(v)
-        best = min(best, v)
+        v = min(prev[d], np.uint16(min(prev[d - 1], prev[d + 1]) + q1), jp)
+        v = np.uint16(np.uint16(v - pm) + np.uint16(c[d]))
+        out[d] = v
+        best16 = min(best16, v)
+    best = np.int32(best16)
     last = ndisp - 1
     v = min(np.int32(prev[last]), np.int32(prev[last - 1]) + p1, jump) - prev_min + np.int32(c[last])
     out[last] = np.uint16(v)
@@ -167,89 +184,72 @@ def _start(c, out):
 
 
 @njit(cache=True)
-def _horizontal_row(cost, guide, p1, p2, p2_min, gscale, row):
-    """``row`` (cols, D) = the left-to-right plus the right-to-left path costs of one row."""
-    w, ndisp = cost.shape
-    prev = np.empty(ndisp, np.uint16)
-    cur = np.empty(ndisp, np.uint16)
-    for direction in range(2):
-        m = np.int32(0)
-        for step in range(w):
-            x = step if direction == 0 else w - 1 - step
-            if step == 0:
-                m = _start(cost[x], cur)
-            else:
-                q = x - 1 if direction == 0 else x + 1
-                jump = m + _penalty(guide[x], guide[q], p2, p2_min, gscale)
-                m = _path_step(prev, m, cost[x], p1, jump, cur)
-            out = row[x]
-            if direction == 0:
-                for d in range(ndisp):
-                    out[d] = cur[d]
-            else:
-                for d in range(ndisp):
-                    out[d] += cur[d]
-            prev, cur = cur, prev
+def _sweep(cost, guide, dy, dxs, p1, p2, p2_min, gscale, total):
+    """``total`` = the path costs of the half of the directions that run down the rows
+    (``dy`` = 1, with left-to-right along the row) or up them (-1, right-to-left).
 
-
-@njit(cache=True, parallel=True)
-def _horizontal(cost, guide, p1, p2, p2_min, gscale, total):
-    """``total`` = the left-to-right plus the right-to-left path costs (assigns)."""
-    for y in prange(cost.shape[0]):
-        _horizontal_row(cost[y], guide[y], p1, p2, p2_min, gscale, total[y])
-
-
-@njit(cache=True, parallel=True)
-def _vertical_row(cost, guide, y, dy, dxs, p1, p2, p2_min, gscale, prev, prev_min, cur, cur_min, total):
-    """One row of the sweeps along rows (direction ``dy``, column steps ``dxs``): path
-    costs of row y from those of row y - dy (``prev``: (len(dxs), cols, D)), added to
-    ``total``. The first row of the sweep starts every path."""
-    h, w, ndisp = cost.shape
-    first = (y == 0) if dy > 0 else (y == h - 1)
-    for x in prange(w):
-        c = cost[y, x]
-        out = total[y, x]
-        for j in range(dxs.shape[0]):
-            xq = x - dxs[j]
-            if first or xq < 0 or xq >= w:
-                cur_min[j, x] = _start(c, cur[j, x])
-            else:
-                pm = prev_min[j, xq]
-                jump = pm + _penalty(guide[y, x], guide[y - dy, xq], p2, p2_min, gscale)
-                cur_min[j, x] = _path_step(prev[j, xq], pm, c, p1, jump, cur[j, x])
-        if dxs.shape[0] == 3:  # one read-modify-write of the total for the three paths
-            a, b, e = cur[0, x], cur[1, x], cur[2, x]
-            for d in range(ndisp):
-                out[d] += a[d] + b[d] + e[d]
-        else:
-            for j in range(dxs.shape[0]):
-                a = cur[j, x]
-                for d in range(ndisp):
-                    out[d] += a[d]
-
-
-@njit(cache=True)
-def _vertical(cost, guide, dy, dxs, p1, p2, p2_min, gscale, total):
+    Rows one after the other; in each, the path along the row, then those from the
+    previous row (column steps ``dxs``), summed and written once per pixel.
+    """
     h, w, ndisp = cost.shape
     k = dxs.shape[0]
     prev = np.empty((k, w, ndisp), np.uint16)
     cur = np.empty((k, w, ndisp), np.uint16)
     prev_min = np.empty((k, w), np.int32)
     cur_min = np.empty((k, w), np.int32)
+    along_prev = np.empty(ndisp, np.uint16)
+    along = np.empty(ndisp, np.uint16)
     for step in range(h):
         y = step if dy > 0 else h - 1 - step
-        _vertical_row(cost, guide, y, dy, dxs, p1, p2, p2_min, gscale, prev, prev_min, cur, cur_min, total)
+        g = guide[y]
+        along_min = np.int32(0)
+        for xs in range(w):
+            x = xs if dy > 0 else w - 1 - xs
+            c = cost[y, x]
+            if xs == 0:
+                along_min = _start(c, along)
+            else:
+                jump = along_min + _penalty(g[x], g[x - dy], p2, p2_min, gscale)
+                along_min = _path_step(along_prev, along_min, c, p1, jump, along)
+            for j in range(k):
+                xq = x - dxs[j]
+                if step == 0 or xq < 0 or xq >= w:
+                    cur_min[j, x] = _start(c, cur[j, x])
+                else:
+                    pm = prev_min[j, xq]
+                    jump = pm + _penalty(g[x], guide[y - dy, xq], p2, p2_min, gscale)
+                    cur_min[j, x] = _path_step(prev[j, xq], pm, c, p1, jump, cur[j, x])
+            out = total[y, x]
+            if k == 3:
+                a, b, e = cur[0, x], cur[1, x], cur[2, x]
+                for d in range(ndisp):
+                    out[d] = np.uint16(np.uint16(along[d] + a[d]) + np.uint16(b[d] + e[d]))
+            else:
+                a = cur[0, x]
+                for d in range(ndisp):
+                    out[d] = np.uint16(along[d] + a[d])
+            along_prev, along = along, along_prev
         prev, cur = cur, prev
         prev_min, cur_min = cur_min, prev_min
 
 
-def aggregate(cost, guide, p1, p2, p2_min, gscale, paths, total):
-    """Sum over scanline directions of the SGM path costs, into ``total`` (assigned).
+@njit(cache=True, parallel=True)
+def _both_sweeps(cost, guide, dxs, p1, p2, p2_min, gscale, down, up):
+    for task in prange(2):
+        if task == 0:
+            _sweep(cost, guide, 1, dxs, p1, p2, p2_min, gscale, down)
+        else:
+            _sweep(cost, guide, -1, dxs, p1, p2, p2_min, gscale, up)
+
+
+def aggregate(cost, guide, p1, p2, p2_min, gscale, paths, down, up):
+    """SGM path costs summed over the scanline directions, in two halves.
 
     L(p, d) = C(p, d) + min(L(q, d), L(q, d +- 1) + P1, min_k L(q, k) + P2(p, q)) - min_k L(q, k)
     with q = p - r the previous pixel on the path; paths entering from outside the image
     start afresh (L = C). P2(p, q) = max(P2 / (1 + |I(p) - I(q)| / gscale), p2_min).
     Each path cost is at most max(C) + P2 <= 255 + P2: 8 paths fit in uint16 for P2 < 7900.
+    The two halves run at once on two threads, without any synchronisation.
 
     Parameters
     ----------
@@ -257,19 +257,17 @@ def aggregate(cost, guide, p1, p2, p2_min, gscale, paths, total):
     guide : (rows, cols) float32
         Intensity (0..255) that lowers P2 across edges.
     paths : {4, 8}
-    total : (rows, cols, D) uint16
-        Output.
+    down, up : (rows, cols, D) uint16
+        Output: the sums of the paths running down the rows (and left to right along
+        them) and of those running up (and right to left); the total is their sum.
     """
-    args = (np.int32(p1), np.int32(p2), np.int32(p2_min), np.float32(gscale))
-    _horizontal(cost, guide, *args[:3], args[3], total)
     dxs = np.array([0, 1, -1] if paths == 8 else [0], np.int64)
-    for dy in (1, -1):
-        _vertical(cost, guide, dy, dxs, *args, total)
+    _both_sweeps(cost, guide, dxs, np.int32(p1), np.int32(p2), np.int32(p2_min), np.float32(gscale), down, up)
 
 
 @njit(cache=True, parallel=True)
-def select(total, dmin, subpixel, uniqueness):
-    """Winner-takes-all over the aggregated costs, per pixel.
+def select(down, up, dmin, subpixel, uniqueness):
+    """Winner-takes-all over the aggregated costs ``down + up`` (see :func:`aggregate`).
 
     Returns
     -------
@@ -283,14 +281,24 @@ def select(total, dmin, subpixel, uniqueness):
         Right-image disparity (whole pixels): argmin over d of total(y, xr + d, d),
         the smallest d among equals; NaN where no left pixel maps to xr.
     """
-    h, w, ndisp = total.shape
+    h, w, ndisp = down.shape
     disp = np.empty((h, w), np.float32)
     margin = np.empty((h, w), np.float32)
     right = np.empty((h, w), np.float32)
     for y in prange(h):
-        _select_row(total[y], dmin, subpixel, uniqueness, disp[y], margin[y])
-        _right_row(total[y], dmin, right[y])
+        t_row = np.empty((w, ndisp), np.uint16)
+        _add_rows(down[y], up[y], t_row)
+        _select_row(t_row, dmin, subpixel, uniqueness, disp[y], margin[y])
+        _right_row(t_row, dmin, right[y])
     return disp, margin, right
+
+
+@njit(cache=True)
+def _add_rows(a, b, out):
+    w, ndisp = a.shape
+    for x in range(w):
+        for d in range(ndisp):
+            out[x, d] = np.uint16(a[x, d] + b[x, d])
 
 
 @njit(cache=True)
@@ -332,3 +340,58 @@ def _right_row(t_row, dmin, right):
             if 0 <= x < w and np.int32(t_row[x, i]) < best:
                 best, arg = np.int32(t_row[x, i]), np.float32(dmin + i)
         right[xr] = arg
+
+
+@njit(cache=True, parallel=True)
+def weighted_median(disp, guide, todo, oy, ox, spatial, inv, out):
+    """Edge-aware weighted median at the flat pixel indices ``todo``, into ``out``.
+
+    Each pixel takes the weighted median of ``disp`` at the offsets (oy, ox) (clipped to
+    the image), weights ``spatial * exp(inv * |guide(q) - guide(p)|^2)``, NaN values
+    weighing nothing; it moves there only if that median is more than 1 px away.
+    ``disp`` (H, W) float32, ``guide`` (H, W, C) float32, ``out`` (H, W) float32.
+    """
+    h, w = disp.shape
+    n = oy.shape[0]
+    for t in prange(todo.shape[0]):
+        _median_at(disp, guide, todo[t] // w, todo[t] % w, oy, ox, spatial, inv, n, out)
+
+
+@njit(cache=True)
+def _median_at(disp, guide, r, c, oy, ox, spatial, inv, n, out):
+    h, w = disp.shape
+    values = np.empty(n, np.float32)
+    weights = np.empty(n, np.float32)
+    for k in range(n):
+        rr = min(max(r + oy[k], 0), h - 1)
+        cc = min(max(c + ox[k], 0), w - 1)
+        v = disp[rr, cc]
+        dist = np.float32(0.0)
+        for ch in range(guide.shape[2]):
+            diff = guide[rr, cc, ch] - guide[r, c, ch]
+            dist += diff * diff
+        wt = np.float32(np.exp(dist * inv)) * spatial[k]
+        if not np.isfinite(v):
+            wt = np.float32(0.0)
+        # insertion sort by value, stable, NaN last
+        j = k
+        while j > 0 and (not np.isfinite(values[j - 1]) and np.isfinite(v) or values[j - 1] > v):
+            values[j] = values[j - 1]
+            weights[j] = weights[j - 1]
+            j -= 1
+        values[j] = v
+        weights[j] = wt
+    total = np.float32(0.0)
+    for k in range(n):
+        total += weights[k]
+    half = np.float32(0.5) * total
+    cum = np.float32(0.0)
+    pick = 0
+    for k in range(n):
+        cum += weights[k]
+        if cum < half:
+            pick += 1
+    pick = min(pick, n - 1)
+    here = disp[r, c]
+    median = values[pick]
+    out[r, c] = median if np.abs(median - here) > 1.0 else here

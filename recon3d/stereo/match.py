@@ -93,8 +93,9 @@ ENGINES = ("census", "sgbm")
 #: Rows shared by neighbouring strips of the census engine (context for vertical paths).
 STRIP_OVERLAP = 32
 
-#: Bytes per pixel and disparity of a census strip: uint8 cost and uint16 aggregated sum.
-STRIP_BYTES_PER_VOXEL = 3
+#: Bytes per pixel and disparity of a census strip: uint8 cost and two uint16 sums (the
+#: paths running down and up the rows, aggregated at once on two threads).
+STRIP_BYTES_PER_VOXEL = 5
 
 #: Smallest image side accepted.
 MIN_SIZE = 8
@@ -698,16 +699,17 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
         p2_min = max(params.p2_min, p1 + 1)
         trunc8, cap = _bt_limits(params)
         cost = np.empty((tallest, w, ndisp), np.uint8)
-        total = np.empty((tallest, w, ndisp), np.uint16)
+        down = np.empty((tallest, w, ndisp), np.uint16)
+        up = np.empty((tallest, w, ndisp), np.uint16)
         parts = []
         for r0, r1, a, b in strips:
-            c, t = cost[: b - a], total[: b - a]
+            c, t_down, t_up = cost[: b - a], down[: b - a], up[: b - a]
             _sgm.cost_volume(cl[a:b], cr[a:b], l8[a:b], rmin[a:b], rmax[a:b], dmin, trunc8 > 0,
                              trunc8, np.float32(params.intensity_weight), cap, c)
             if penalty is not None:
                 _sgm.penalise_outside(c, *(x[a:b] for x in penalty))
-            _sgm.aggregate(c, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, t)
-            disp, margin, right = _sgm.select(t, dmin, params.subpixel, float(params.uniqueness))
+            _sgm.aggregate(c, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, t_down, t_up)
+            disp, margin, right = _sgm.select(t_down, t_up, dmin, params.subpixel, float(params.uniqueness))
             parts.append((disp[r0 - a : r1 - a], right[r0 - a : r1 - a], margin[r0 - a : r1 - a]))
     disp = np.concatenate([p[0] for p in parts])
     disp_right = np.concatenate([p[1] for p in parts])
@@ -913,28 +915,14 @@ def _edge_aware_median(disp: np.ndarray, guide: np.ndarray, radius: int, sigma: 
     todo = np.flatnonzero(finite & (hi - lo > step))
     if todo.size == 0:
         return disp
+    from recon3d.stereo import _sgm
+
     off = np.arange(-radius, radius + 1, 2 if radius > 3 else 1)  # a sparse lattice: same reach, 1/4 of the work
-    oy, ox = (a.ravel() for a in np.meshgrid(off, off, indexing="ij"))
+    oy, ox = (a.ravel().astype(np.int64) for a in np.meshgrid(off, off, indexing="ij"))
     spatial = np.exp(-(oy**2 + ox**2) / (2.0 * radius**2)).astype(np.float32)
-    inv = np.float32(-0.5 / sigma**2)
     out = disp.copy()
-    chunk = max(1, 4_000_000 // oy.size)  # bounds the (pixels, window) temporaries
-    for start in range(0, todo.size, chunk):
-        idx = todo[start : start + chunk]
-        r, c = np.divmod(idx, w)
-        rows = np.clip(r[:, None] + oy, 0, h - 1)
-        cols = np.clip(c[:, None] + ox, 0, w - 1)
-        diff = guide[rows, cols] - guide[r, c][:, None, :]
-        weight = np.exp(np.einsum("nkc,nkc->nk", diff, diff) * inv) * spatial
-        values = disp[rows, cols]
-        weight[~np.isfinite(values)] = 0.0
-        order = np.argsort(values, axis=1, kind="stable")  # NaN last, with no weight
-        values = np.take_along_axis(values, order, axis=1)
-        cum = np.cumsum(np.take_along_axis(weight, order, axis=1), axis=1)
-        k = (cum < 0.5 * cum[:, -1:]).sum(axis=1)
-        median = values[np.arange(idx.size), k]
-        # only pixels on the wrong side of a step move: the others keep their sub-pixel value
-        out.flat[idx] = np.where(np.abs(median - disp.flat[idx]) > 1.0, median, disp.flat[idx])
+    _sgm.weighted_median(np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(guide, np.float32),
+                         todo.astype(np.int64), oy, ox, spatial, np.float32(-0.5 / sigma**2), out)
     return out
 
 
