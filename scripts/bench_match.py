@@ -167,6 +167,8 @@ def run_case(case: str, engine: str, overrides: dict, data: Path = CONES) -> dic
     if info:
         out["searched"] = info["disparity_range_searched"]["value"]
         out["stage_seconds"] = info["seconds"]
+        if "strip_disparity_ranges" in info:
+            out["strip_ranges"] = info["strip_disparity_ranges"]
     if case == "cones" and engine not in SGBM_MODES:
         out["unfilled"] = accuracy(result.unfilled, gt, mask)
     return out
@@ -239,7 +241,8 @@ def main() -> int:
                 f" {u['density_percent']:6.1f}"
             )
         if "stage_seconds" in r:
-            print(f"{'':10s} stages: {r['stage_seconds']}, searched {r['searched']}")
+            print(f"{'':10s} stages: {r['stage_seconds']}, searched {r['searched']}"
+                  + (f", per strip {r['strip_ranges']}" if "strip_ranges" in r else ""))
     print_ratios(rows)
     return 1 if failed else 0
 

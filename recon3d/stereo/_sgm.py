@@ -302,14 +302,23 @@ def _add_rows(a, b, out):
 
 
 @njit(cache=True)
+def _min_of(t):
+    """Smallest value of a uint16 (n,) array, 65535 when empty (a SIMD reduction)."""
+    best = np.uint16(_TOP)
+    for i in range(t.shape[0]):
+        best = min(best, t[i])
+    return np.int32(best)
+
+
+@njit(cache=True)
 def _select_row(t_row, dmin, subpixel, uniqueness, disp, margin):
     w, ndisp = t_row.shape
     for x in range(w):
         t = t_row[x]
-        best, bi = np.int32(t[0]), 0
-        for i in range(1, ndisp):
-            if np.int32(t[i]) < best:
-                best, bi = np.int32(t[i]), i
+        best = _min_of(t)
+        bi = 0
+        while np.int32(t[bi]) != best:  # the first minimum wins, as in argmin
+            bi += 1
         bestf = np.float32(best)
         value = np.float32(bi + dmin)
         if subpixel and ndisp >= 3 and 0 < bi < ndisp - 1:
@@ -318,10 +327,8 @@ def _select_row(t_row, dmin, subpixel, uniqueness, disp, margin):
             if den > 0:
                 offset = (cm - cp) / (np.float32(2.0) * den)
                 value += min(max(offset, np.float32(-0.5)), np.float32(0.5))
-        second = np.int32(_TOP)
-        for i in range(ndisp):
-            if (i < bi - 1 or i > bi + 1) and np.int32(t[i]) < second:
-                second = np.int32(t[i])
+        # second best outside the winner's +-1 neighbourhood
+        second = min(_min_of(t[: max(bi - 1, 0)]), _min_of(t[bi + 2 :]))
         secondf = bestf if second == _TOP else np.float32(second)
         ratio = (secondf - bestf) / max(secondf, np.float32(1.0))
         margin[x] = min(max(ratio, np.float32(0.0)), np.float32(1.0))
@@ -332,14 +339,28 @@ def _select_row(t_row, dmin, subpixel, uniqueness, disp, margin):
 
 @njit(cache=True)
 def _right_row(t_row, dmin, right):
+    """Right disparity of one row: for each right column xr the smallest d among the
+    minima of t_row(xr + d, d). Left pixels in order, each updating the right columns
+    it reaches, kept reversed (entry w - 1 - xr) so that a pixel's run is contiguous."""
     w, ndisp = t_row.shape
+    best = np.full(w, np.uint16(_TOP), np.uint16)
+    arg = np.full(w, -1, np.int32)
+    for x in range(w):
+        i0 = max(0, x - dmin - (w - 1))
+        i1 = min(ndisp, x - dmin + 1)
+        if i1 <= i0:
+            continue
+        j0 = w - 1 - x + dmin + i0
+        t = t_row[x, i0:i1]
+        b = best[j0 : j0 + (i1 - i0)]
+        a = arg[j0 : j0 + (i1 - i0)]
+        for k in range(i1 - i0):
+            if t[k] < b[k]:
+                b[k] = t[k]
+                a[k] = i0 + k
     for xr in range(w):
-        best, arg = np.int32(_TOP), np.float32(np.nan)
-        for i in range(ndisp):
-            x = xr + dmin + i
-            if 0 <= x < w and np.int32(t_row[x, i]) < best:
-                best, arg = np.int32(t_row[x, i]), np.float32(dmin + i)
-        right[xr] = arg
+        i = arg[w - 1 - xr]
+        right[xr] = np.float32(np.nan) if i < 0 else np.float32(dmin + i)
 
 
 @njit(cache=True, parallel=True)

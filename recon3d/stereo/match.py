@@ -33,7 +33,10 @@ somewhat less accurate.
 
 A coarse pass (``pyramid_levels``) at 1/2 (1/4...) resolution with the fast engine
 narrows the searched disparity range to what the scene contains, before the full
-resolution pass: fewer disparities, less time and memory, fewer wrong candidates.
+resolution pass: fewer disparities, less time and memory, fewer wrong candidates. The
+census engine narrows it further per strip of rows, to what the coarse pass saw in
+those rows (``params["strip_disparity_ranges"]``): a range set by a few tall buildings
+or by a sloping ground is searched in full only where it occurs.
 
 Measured on Middlebury 2003 "cones" (450 x 375, disparities 0..64, non-occluded pixels
 with a ground truth, invalid pixels counted as errors; ``scripts/bench_match.py``):
@@ -399,14 +402,15 @@ def match(
 
     bounds = _bounds(low, high, weight, (h, w))
     t = time.perf_counter()
-    lo, hi, reason = _narrow_range(gl, gr, dmin, dmax, params)
+    lo, hi, reason, coarse_pass = _narrow_range(gl, gr, dmin, dmax, params)
     timings["pyramid"] = time.perf_counter() - t
     info["disparity_range_searched"] = {"value": [lo, hi], "reason": reason}
 
     t = time.perf_counter()
     if params.engine == "census":
-        disp, disp_right, cost_conf, nstrips = _census_engine(gl, gr, lo, hi, params, bounds)
-        info["strips"] = nstrips
+        disp, disp_right, cost_conf, ranges = _census_engine(gl, gr, lo, hi, params, bounds, coarse_pass)
+        info["strips"] = len(ranges)
+        info["strip_disparity_ranges"] = ranges
     else:
         disp, disp_right = _sgbm_engine(gl, gr, lo, hi, params, right=params.lr_check)
         cost_conf = None
@@ -562,18 +566,40 @@ def _outside_hard(disp: np.ndarray, bounds) -> np.ndarray:
 # ----------------------------------------------------------------------------- pyramid
 
 
-def _narrow_range(gl, gr, dmin: int, dmax: int, params: MatchParams) -> tuple[int, int, str]:
-    """Disparity range seen by a coarse left-right checked pass, within [dmin, dmax)."""
+@dataclass
+class _Coarse:
+    """The coarse pass: its disparity map (full-resolution pixels, NaN where it failed),
+    at ``1 / scale`` of the image, and the margin (px) kept around what it saw."""
+
+    disparity: np.ndarray
+    scale: int
+    margin: int
+
+    def rows_range(self, a: int, b: int, lo: int, hi: int) -> tuple[int, int] | None:
+        """Range [lo', hi') inside [lo, hi) that the coarse pass saw over image rows a..b,
+        widened by the margin; None when it matched under 20 % of those rows' pixels."""
+        part = self.disparity[a // self.scale : -(-b // self.scale)]
+        valid = np.isfinite(part)
+        if part.size == 0 or valid.mean() < 0.2:
+            return None
+        seen_lo = max(lo, math.floor(float(part[valid].min())) - self.margin)
+        seen_hi = min(hi, math.ceil(float(part[valid].max())) + self.margin + 1)
+        return (seen_lo, seen_hi) if seen_hi > seen_lo else None
+
+
+def _narrow_range(gl, gr, dmin: int, dmax: int, params: MatchParams) -> tuple[int, int, str, _Coarse | None]:
+    """Disparity range seen by a coarse left-right checked pass, within [dmin, dmax), and
+    that pass (None when none ran or it matched too little)."""
     levels = params.pyramid_levels
     if levels == 0:
-        return dmin, dmax, "as given (pyramid_levels = 0)"
+        return dmin, dmax, "as given (pyramid_levels = 0)", None
     if dmax - dmin < 32:
-        return dmin, dmax, "as given (fewer than 32 disparities: not worth a coarse pass)"
+        return dmin, dmax, "as given (fewer than 32 disparities: not worth a coarse pass)", None
     s = 2**levels
     h, w = gl.shape
     ch, cw = max(1, round(h / s)), max(1, round(w / s))
     if min(ch, cw) < 16:
-        return dmin, dmax, "as given (image too small for a coarse pass)"
+        return dmin, dmax, "as given (image too small for a coarse pass)", None
     small_l = cv2.resize(_to_uint8(gl), (cw, ch), interpolation=cv2.INTER_AREA)
     small_r = cv2.resize(_to_uint8(gr), (cw, ch), interpolation=cv2.INTER_AREA)
     cmin, cmax = math.floor(dmin / s), math.ceil(dmax / s)
@@ -587,18 +613,20 @@ def _narrow_range(gl, gr, dmin: int, dmax: int, params: MatchParams) -> tuple[in
     valid = np.isfinite(d)
     if valid.mean() < 0.2:
         why = f"the 1/{s} coarse pass matched only {100 * valid.mean():.0f} % of pixels"
-        return dmin, dmax, f"as given ({why})"
+        return dmin, dmax, f"as given ({why})", None
     margin = params.pyramid_margin + s
+    coarse_pass = _Coarse(d * np.float32(s), s, margin)
     lo = max(dmin, math.floor(float(d[valid].min()) * s) - margin)
     hi = min(dmax, math.ceil(float(d[valid].max()) * s) + margin + 1)
     if hi - lo > 0.8 * (dmax - dmin) or hi <= lo:
-        return dmin, dmax, f"as given (the 1/{s} coarse pass spans {lo}..{hi}: too little to gain)"
+        why = f"the 1/{s} coarse pass spans {lo}..{hi}: too little to gain over the whole image"
+        return dmin, dmax, f"as given ({why})", coarse_pass
     reason = (
         f"narrowed by a 1/{s} resolution pass: it matched disparities in "
         f"{lo + margin}..{hi - margin - 1}, +-{margin} px"
     )
     log.debug("disparity range [%d, %d) %s", lo, hi, reason)
-    return lo, hi, reason
+    return lo, hi, reason, coarse_pass
 
 
 # ----------------------------------------------------------------------------- sgbm engine
@@ -674,11 +702,15 @@ def _sgbm_once(a, b, dmin: int, ndisp: int, p1: int, p2: int, params: MatchParam
 # ----------------------------------------------------------------------------- census engine
 
 
-def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=None):
-    """Left disparity (subpixel, NaN where not unique), right disparity, cost confidence.
+def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=None, coarse_pass=None):
+    """Left disparity (subpixel, NaN where not unique), right disparity, cost confidence,
+    and the range [lo, hi) each strip searched.
 
     One strip of rows at a time, each matched by the compiled kernels of
-    :mod:`recon3d.stereo._sgm` on ``workers`` threads.
+    :mod:`recon3d.stereo._sgm` on ``workers`` threads. With a coarse pass, each strip
+    searches only the disparities that pass saw in its rows (+- its margin): a scene
+    whose range comes from a few tall buildings, or from a sloping ground, needs far
+    fewer per strip than over the whole image.
     """
     from recon3d.stereo import _sgm
 
@@ -694,27 +726,31 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
                    "match with a smaller stereo.strip_memory_mb or a narrower disparity range")
     with _numba_threads(params.workers):
         cl, cr, l8, rmin, rmax = _cost_inputs(gl, gr, params, _sgm)
-        penalty = None if bounds is None else _outside_penalty(dmin, ndisp, *bounds)
         p1, p2 = params.resolved_penalties()
         p2_min = max(params.p2_min, p1 + 1)
         trunc8, cap = _bt_limits(params)
-        cost = np.empty((tallest, w, ndisp), np.uint8)
-        down = np.empty((tallest, w, ndisp), np.uint16)
-        up = np.empty((tallest, w, ndisp), np.uint16)
-        parts = []
+        voxels = tallest * w * ndisp
+        cost_buf = np.empty(voxels, np.uint8)
+        down_buf, up_buf = np.empty(voxels, np.uint16), np.empty(voxels, np.uint16)
+        parts, ranges = [], []
         for r0, r1, a, b in strips:
-            c, t_down, t_up = cost[: b - a], down[: b - a], up[: b - a]
-            _sgm.cost_volume(cl[a:b], cr[a:b], l8[a:b], rmin[a:b], rmax[a:b], dmin, trunc8 > 0,
+            lo, hi = (coarse_pass.rows_range(a, b, dmin, dmax) if coarse_pass else None) or (dmin, dmax)
+            shape = (b - a, w, hi - lo)
+            size = math.prod(shape)
+            c = cost_buf[:size].reshape(shape)
+            t_down, t_up = down_buf[:size].reshape(shape), up_buf[:size].reshape(shape)
+            _sgm.cost_volume(cl[a:b], cr[a:b], l8[a:b], rmin[a:b], rmax[a:b], lo, trunc8 > 0,
                              trunc8, np.float32(params.intensity_weight), cap, c)
-            if penalty is not None:
-                _sgm.penalise_outside(c, *(x[a:b] for x in penalty))
+            if bounds is not None:
+                _sgm.penalise_outside(c, *_outside_penalty(lo, hi - lo, *(x[a:b] for x in bounds)))
             _sgm.aggregate(c, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, t_down, t_up)
-            disp, margin, right = _sgm.select(t_down, t_up, dmin, params.subpixel, float(params.uniqueness))
+            disp, margin, right = _sgm.select(t_down, t_up, lo, params.subpixel, float(params.uniqueness))
             parts.append((disp[r0 - a : r1 - a], right[r0 - a : r1 - a], margin[r0 - a : r1 - a]))
+            ranges.append([lo, hi])
     disp = np.concatenate([p[0] for p in parts])
     disp_right = np.concatenate([p[1] for p in parts])
     conf = np.concatenate([p[2] for p in parts])
-    return disp, disp_right, conf, len(strips)
+    return disp, disp_right, conf, ranges
 
 
 def _strips(h: int, rows: int) -> list[tuple[int, int, int, int]]:
