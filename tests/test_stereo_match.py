@@ -211,6 +211,26 @@ def test_strips_match_whole_image():
     assert np.nanmax(diff) < 0.5 and np.isfinite(diff).all()
 
 
+def test_strips_search_what_the_coarse_pass_saw_in_their_rows():
+    """A ground sloping from 5 to 85 px of disparity down the image: no strip of rows
+    needs the whole range, and each searches only its own part of it (covering its true
+    disparities), with the same accuracy as one strip over everything."""
+    left, right, gt = _plane_pair(320, 200, 5.0, 0.0, 0.25)
+    params = MatchParams(max_disparity=128, strip_memory_mb=2)
+    result = match(left, right, params)
+    ranges = result.params["strip_disparity_ranges"]
+    assert len(ranges) > 2
+    widths = [hi - lo for lo, hi in ranges]
+    lo_all, hi_all = result.params["disparity_range_searched"]["value"]
+    assert max(widths) < 0.6 * (hi_all - lo_all), (ranges, lo_all, hi_all)
+    inside = _interior(gt.shape, 100)
+    err = np.abs(result.disparity - gt)[inside]
+    assert np.isfinite(err).all() and err.mean() < 0.2, err.mean()
+    whole = match(left, right, MatchParams(max_disparity=128))
+    assert whole.params["strips"] == 1
+    assert np.abs(whole.disparity - gt)[inside].mean() < 0.2
+
+
 def test_result_contract():
     left, right, _ = _plane_pair(64, 96, 5.0)
     result = match(left, right, MatchParams(max_disparity=16))

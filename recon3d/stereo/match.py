@@ -729,12 +729,14 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
         p1, p2 = params.resolved_penalties()
         p2_min = max(params.p2_min, p1 + 1)
         trunc8, cap = _bt_limits(params)
-        voxels = tallest * w * ndisp
+        ranges = [list((coarse_pass.rows_range(a, b, dmin, dmax) if coarse_pass else None) or (dmin, dmax))
+                  for _, _, a, b in strips]
+        # buffers of the largest strip, reused: first touching a page costs more than using it
+        voxels = max((b - a) * w * (hi - lo) for (_, _, a, b), (lo, hi) in zip(strips, ranges, strict=True))
         cost_buf = np.empty(voxels, np.uint8)
         down_buf, up_buf = np.empty(voxels, np.uint16), np.empty(voxels, np.uint16)
-        parts, ranges = [], []
-        for r0, r1, a, b in strips:
-            lo, hi = (coarse_pass.rows_range(a, b, dmin, dmax) if coarse_pass else None) or (dmin, dmax)
+        parts = []
+        for (r0, r1, a, b), (lo, hi) in zip(strips, ranges, strict=True):
             shape = (b - a, w, hi - lo)
             size = math.prod(shape)
             c = cost_buf[:size].reshape(shape)
@@ -746,7 +748,6 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
             _sgm.aggregate(c, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, t_down, t_up)
             disp, margin, right = _sgm.select(t_down, t_up, lo, params.subpixel, float(params.uniqueness))
             parts.append((disp[r0 - a : r1 - a], right[r0 - a : r1 - a], margin[r0 - a : r1 - a]))
-            ranges.append([lo, hi])
     disp = np.concatenate([p[0] for p in parts])
     disp_right = np.concatenate([p[1] for p in parts])
     conf = np.concatenate([p[2] for p in parts])
