@@ -186,7 +186,8 @@ def print_ratios(rows: list[dict]) -> None:
             continue
         for peer in rows:
             if peer["case"] == r["case"] and peer["engine"] in SGBM_MODES:
-                _bench.print_ratios(f"{r['case']}, recon3d {r['engine']}", peer["engine"], r, peer, RATIO_KEYS)
+                label = {"raw-sgbm": "SGBM", "raw-sgbm-hh": "SGBM HH", "raw-sgbm-3way": "SGBM 3WAY"}[peer["engine"]]
+                _bench.print_ratios(f"{r['case']}, recon3d {r['engine']}", label, r, peer, RATIO_KEYS)
 
 
 def main() -> int:
