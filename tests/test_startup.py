@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Libraries that must not be imported by ``import recon3d, recon3d.cli`` (the issue's
 #: four first; the others cost tenths of a second each too).
 HEAVY = ("trimesh", "scipy.spatial", "open3d", "cv2", "scipy", "numpy", "rasterio", "pyproj", "laspy",
-         "shapely", "pycolmap", "dask", "tqdm")
+         "shapely", "pycolmap", "dask", "tqdm", "numba")
 
 
 def _modules_after(code: str) -> set[str]:

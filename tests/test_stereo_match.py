@@ -211,6 +211,26 @@ def test_strips_match_whole_image():
     assert np.nanmax(diff) < 0.5 and np.isfinite(diff).all()
 
 
+def test_strips_search_what_the_coarse_pass_saw_in_their_rows():
+    """A ground sloping from 5 to 85 px of disparity down the image: no strip of rows
+    needs the whole range, and each searches only its own part of it (covering its true
+    disparities), with the same accuracy as one strip over everything."""
+    left, right, gt = _plane_pair(320, 200, 5.0, 0.0, 0.25)
+    params = MatchParams(max_disparity=128, strip_memory_mb=2)
+    result = match(left, right, params)
+    ranges = result.params["strip_disparity_ranges"]
+    assert len(ranges) > 2
+    widths = [hi - lo for lo, hi in ranges]
+    lo_all, hi_all = result.params["disparity_range_searched"]["value"]
+    assert max(widths) < 0.6 * (hi_all - lo_all), (ranges, lo_all, hi_all)
+    inside = _interior(gt.shape, 100)
+    err = np.abs(result.disparity - gt)[inside]
+    assert np.isfinite(err).all() and err.mean() < 0.2, err.mean()
+    whole = match(left, right, MatchParams(max_disparity=128))
+    assert whole.params["strips"] == 1
+    assert np.abs(whole.disparity - gt)[inside].mean() < 0.2
+
+
 def test_result_contract():
     left, right, _ = _plane_pair(64, 96, 5.0)
     result = match(left, right, MatchParams(max_disparity=16))
@@ -242,6 +262,39 @@ def test_deterministic(engine):
     for other in (second, one_worker):
         assert np.array_equal(first.disparity, other.disparity, equal_nan=True)
         assert np.array_equal(first.confidence, other.confidence)
+
+
+_THREADS_SCRIPT = """
+import hashlib, sys
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_stereo_match import _plane_pair
+from recon3d.stereo.match import MatchParams, match
+left, right, _ = _plane_pair(150, 140, 9.3, 0.05, 0.02)
+result = match(left, right, MatchParams(max_disparity=40, strip_memory_mb=1))
+print(result.params["strips"], hashlib.sha256(result.disparity.tobytes() + result.confidence.tobytes()).hexdigest())
+"""
+
+
+def test_same_bytes_whatever_the_thread_count():
+    """The compiled census engine gives the same bytes on 1 and on 2 numba threads."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    tests = Path(__file__).resolve().parent
+    script = _THREADS_SCRIPT.format(tests=str(tests))
+    outputs = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "NUMBA_NUM_THREADS": threads,
+               "PYTHONPATH": os.pathsep.join([str(tests.parent), os.environ.get("PYTHONPATH", "")])}
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=False)
+        assert done.returncode == 0, done.stderr[-3000:]
+        outputs.append(done.stdout.strip().splitlines()[-1])
+    strips, digest = outputs[0].split()
+    assert int(strips) > 1  # strip borders are part of what must not depend on threads
+    assert outputs[0] == outputs[1]
 
 
 # ----------------------------------------------------------------------------- bad input
