@@ -134,5 +134,6 @@ def test_report_shows_the_orthophoto_and_the_doubtful_areas(ortho_run):
     section = section[:section.index("</section>")]
     assert section.count("<img") == 2 and 'alt="orthophoto"' in section and 'alt="image difference"' in section
     regions = ortho_run.report["ortho"]["regions"][:20]
+    assert all(np.isfinite(r["mean"]) and r["area"] > 0 for r in ortho_run.report["ortho"]["regions"])
     rows = re.findall(r"<tr><td data-v=\"([0-9.]+)\"", section)
     assert [float(v) for v in rows] == [r["area"] for r in regions]

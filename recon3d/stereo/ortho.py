@@ -401,9 +401,12 @@ def doubtful_regions(diff: Raster, threshold: float, min_area: float, labels: np
     out = []
     for r in keep:
         inside = regions == r
+        values = diff.data[inside]
+        if not np.isfinite(values).any():  # only cells the median filter reached, none judged
+            continue
         row, col = rr[inside].mean(), cc[inside].mean()
         x, y = diff.transform @ (col + 0.5, row + 0.5)
         touched = sorted({ids[v - 1] for v in np.unique(labels[inside]) if v > 0}) if labels is not None and ids else []
         out.append({"area": round(float(cells[r] * diff.resolution**2), 1), "centre": [round(x, 2), round(y, 2)],
-                    "mean": round(float(diff.data[inside].mean()), 3), "buildings": touched})
+                    "mean": round(float(np.nanmean(values)), 3), "buildings": touched})
     return sorted(out, key=lambda d: -d["area"])
