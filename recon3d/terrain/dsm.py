@@ -290,7 +290,7 @@ def make_dsm(
     bounds as the area of the grid. ``per_source`` as in :func:`grid_stereo`.
     """
     keep = surface_points(cloud)
-    xyz = cloud.xyz[keep]
+    xyz = cloud.xyz if keep.all() else cloud.xyz[keep]  # no copy of the cloud when it has no noise
     lo, hi = cloud.bounds if extent is None else extent
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
     if observed is None:

@@ -174,7 +174,7 @@ def _trusted_points(cloud: PointCloud, params: dict) -> np.ndarray:
         cut = np.percentile(score, 10)
         keep &= score >= cut
         params["quality_cut"] = {"value": float(cut), "reason": "stereo matching score: worst 10 % not used"}
-    return cloud.xyz[keep] if keep.any() else cloud.xyz
+    return cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
 
 
 def minimum_surface(
