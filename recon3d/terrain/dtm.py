@@ -100,32 +100,68 @@ def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, he
     heights : (t, 3) float
         Heights at the vertices.
 
-    Each triangle is walked row by row over the columns its edges bound. With integer
-    vertices a cell that is not on an edge lies at least 1 / (rows + cols) columns inside
-    or outside it, far more than the rounding the bounds are widened by, so a cell on a
-    shared edge is in both triangles (and takes either's plane, equal there) and no
-    other cell is in two.
+    Each triangle is walked row by row (a scanline fill) between its long edge (top to
+    bottom vertex) and the short edge of that row. With integer vertices a cell that is
+    not on an edge lies at least 1 / rows columns inside or outside it, far more than the
+    rounding the bounds are widened by, so a cell on a shared edge is in both triangles
+    (and takes either's plane, equal there) and no other cell is in two.
     """
     v = corners.astype(np.float64)
+    order = np.argsort(v[..., 0], axis=1, kind="stable")  # vertices top to bottom
+    v = np.take_along_axis(v, order[..., None], axis=1)
+    z = np.take_along_axis(heights.astype(np.float64), order, axis=1)
     r, c = v[..., 0], v[..., 1]
     area = (r[:, 1] - r[:, 0]) * (c[:, 2] - c[:, 0]) - (c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0])
     keep = area != 0
-    r, c, z, area = r[keep], c[keep], heights[keep].astype(np.float64), area[keep]
+    r, c, z, area = r[keep], c[keep], z[keep], area[keep]
     plane = _planes(r, c, z, area)
-    top = r.min(axis=1).astype(np.int64)
-    height = r.max(axis=1).astype(np.int64) - top + 1
-    tri = np.repeat(np.arange(len(r)), height)  # one (triangle, row) pair each
-    row = top[tri] + np.arange(len(tri)) - np.repeat(np.cumsum(height) - height, height)
-    first, last = _column_spans(r, c, np.sign(area), tri, row)
+    top = r[:, 0].astype(np.int64)
+    height = r[:, 2].astype(np.int64) - top + 1
+    first, last = _scanline_spans(r, c, height)
     count = np.maximum(last - first + 1, 0)
+    tri = np.repeat(np.arange(len(r)), height)  # one (triangle, row) pair each
+    row = np.repeat(top - (np.cumsum(height) - height), height) + np.arange(len(tri))
     for start, stop in _chunks(np.cumsum(count)):
         n = count[start:stop]
-        pair = np.repeat(np.arange(start, stop), n)
-        col = first[pair] + np.arange(len(pair)) - np.repeat(np.cumsum(n) - n, n)
-        i = row[pair]
-        hit = todo[i, col]
-        t, i, col = tri[pair[hit]], i[hit], col[hit]
+        col = np.repeat(first[start:stop] - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
+        i = np.repeat(row[start:stop], n)
+        hit = np.flatnonzero(todo[i, col])
+        t, i, col = np.repeat(tri[start:stop], n)[hit], i[hit], col[hit]
         out[i, col] = plane[t, 0] * i + plane[t, 1] * col + plane[t, 2]
+
+
+#: Widening of the column bounds of a row, far below the 1 / rows columns that separate
+#: a cell off an edge from it.
+SPAN_SLACK = 1e-7
+
+
+def _scanline_spans(r: np.ndarray, c: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) int first and last column of each row of each triangle, rows in order.
+
+    Parameters
+    ----------
+    r, c : (t, 3) float
+        Vertex rows and columns, vertices sorted by row (top, middle, bottom).
+    height : (t,) int
+        Rows each triangle spans (bottom - top + 1).
+    """
+    def per_row(values):
+        return np.repeat(values, height)
+
+    drop = np.arange(int(height.sum())) - per_row(np.cumsum(height) - height)  # rows below the top vertex
+    row = per_row(r[:, 0]) + drop
+    long_slope = (c[:, 2] - c[:, 0]) / (r[:, 2] - r[:, 0])
+    upper_rows, lower_rows = r[:, 1] - r[:, 0], r[:, 2] - r[:, 1]
+    upper_slope = (c[:, 1] - c[:, 0]) / np.where(upper_rows == 0, 1.0, upper_rows)
+    lower_slope = (c[:, 2] - c[:, 1]) / np.where(lower_rows == 0, 1.0, lower_rows)
+    along_long = per_row(c[:, 0]) + per_row(long_slope) * drop
+    # above the middle vertex the short edge is top-middle, from it down middle-bottom
+    # (a flat bottom edge is met on the last row only, where top-middle ends at the middle vertex)
+    upper = (row < per_row(r[:, 1])) | per_row(lower_rows == 0)
+    along_short = np.where(upper, per_row(c[:, 0]) + per_row(upper_slope) * drop,
+                           per_row(c[:, 1]) + per_row(lower_slope) * (row - per_row(r[:, 1])))
+    lo, hi = np.minimum(along_long, along_short), np.maximum(along_long, along_short)
+    return np.ceil(lo - SPAN_SLACK).astype(np.int64), np.floor(hi + SPAN_SLACK).astype(np.int64)
 
 
 def _planes(r: np.ndarray, c: np.ndarray, z: np.ndarray, area: np.ndarray) -> np.ndarray:
@@ -135,34 +171,6 @@ def _planes(r: np.ndarray, c: np.ndarray, z: np.ndarray, area: np.ndarray) -> np
     a = (dz1 * dc2 - dz2 * dc1) / area
     b = (dr1 * dz2 - dr2 * dz1) / area
     return np.column_stack([a, b, z[:, 0] - a * r[:, 0] - b * c[:, 0]])
-
-
-#: Widening of the column bounds of a row, far below the 1 / (rows + cols) columns that
-#: separate a cell off an edge from it.
-SPAN_SLACK = 1e-7
-
-
-def _column_spans(r, c, orientation, tri, row) -> tuple[np.ndarray, np.ndarray]:
-    """(m,) int first and last columns inside triangle ``tri`` on ``row``, for each pair.
-
-    A point q is inside a triangle when every edge (p0, p1) has
-    orientation x ((p1 - p0) x (q - p0)) >= 0, linear in q's column: each edge not
-    parallel to the rows bounds the column from below or from above.
-    """
-    lower = np.full((len(r), 3, 2), [-np.inf, 0.0])  # (t, edge, (intercept, slope in row))
-    upper = np.full((len(r), 3, 2), [np.inf, 0.0])
-    for k in range(3):
-        r0, c0, r1, c1 = r[:, k], c[:, k], r[:, (k + 1) % 3], c[:, (k + 1) % 3]
-        dr, dc = (r1 - r0) * orientation, (c1 - c0) * orientation
-        # dr (col - c0) - dc (row - r0) >= 0  <=>  col >= or <= c0 + dc / dr (row - r0)
-        slope = dc / np.where(dr == 0, 1.0, dr)
-        bound = np.column_stack([c0 - slope * r0, slope])
-        lower[:, k] = np.where((dr > 0)[:, None], bound, lower[:, k])
-        upper[:, k] = np.where((dr < 0)[:, None], bound, upper[:, k])
-    rowf = row.astype(np.float64)
-    lo = np.max(lower[tri, :, 0] + lower[tri, :, 1] * rowf[:, None], axis=1)
-    hi = np.min(upper[tri, :, 0] + upper[tri, :, 1] * rowf[:, None], axis=1)
-    return np.ceil(lo - SPAN_SLACK).astype(np.int64), np.floor(hi + SPAN_SLACK).astype(np.int64)
 
 
 def _chunks(ends: np.ndarray):
