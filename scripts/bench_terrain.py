@@ -75,7 +75,13 @@ def write_tiled(data: Path, kx: int, ky: int, out: Path) -> int:
 
 def worker(path: Path, case: str, out: Path, crs: str | None, hole_area: float) -> None:
     """One recon3d run of ``case`` on ``path`` (this script re-run with --worker): prints its stage times as JSON."""
-    times = {}
+    import resource
+
+    times, peaks = {}, {}
+
+    def peak(stage: str) -> None:
+        peaks[stage] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
     t = time.perf_counter()
     from recon3d.config import GroundConfig
     from recon3d.core.geo import crs_units, parse_crs
@@ -88,25 +94,30 @@ def worker(path: Path, case: str, out: Path, crs: str | None, hole_area: float) 
     cloud = read_las(path, crs=parse_crs(crs) if crs else None)
     units = crs_units(cloud.crs)
     times["read"] = time.perf_counter() - t
+    peak("read")
     t = time.perf_counter()
     res, _ = dsm.choose_resolution(dsm.point_spacing(cloud.xyz[:, :2]), units)
     surface = dsm.make_dsm(cloud, res, max_hole_cells=int(units.area(hole_area) / res**2))
     times["dsm"] = time.perf_counter() - t
+    peak("dsm")
     products = {"dsm": surface}
     if case == "terrain":
         t = time.perf_counter()
         result = ground.classify_ground(cloud, GroundConfig(), units, res)
         times["ground"] = time.perf_counter() - t
+        peak("ground")
         t = time.perf_counter()
         noise = result.params["noise"]["value"] / units.vertical
         products["dtm"] = dtm.make_dtm(cloud.xyz[result.for_dtm], surface, noise=noise)
         products["ndsm"] = dtm.make_ndsm(surface, products["dtm"])
         times["dtm+ndsm"] = time.perf_counter() - t
+        peak("dtm+ndsm")
     t = time.perf_counter()
     for name, raster in products.items():
         write_raster(raster, out / f"{name}.tif")
     times["write"] = time.perf_counter() - t
-    print(json.dumps({"resolution": res, "shape": list(surface.shape), "times": times}))
+    peak("write")
+    print(json.dumps({"resolution": res, "shape": list(surface.shape), "times": times, "peak_mb_after": peaks}))
 
 
 def run_process(cmd: list[str], env: dict | None = None) -> tuple[float, float, str]:

@@ -84,7 +84,7 @@ def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 #: Candidate cells rasterised at a time, bounding memory.
-RASTER_CHUNK = 1 << 22
+RASTER_CHUNK = 1 << 20
 
 
 def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, heights: np.ndarray) -> None:

@@ -296,6 +296,10 @@ METHODS: dict[str, Callable[[MinimumSurface, Units], Raster]] = {
 # --------------------------------------------------------------------------- helpers
 
 
+#: Points sampled on the terrain at a time: bounds the sampling's temporaries to ~100 MB.
+SAMPLE_CHUNK = 1 << 20
+
+
 def _points_near(
     xyz: np.ndarray, terrain: Raster, s: MinimumSurface, config: GroundConfig, units: Units
 ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -311,7 +315,10 @@ def _points_near(
         why = "0.5 m, or 3 x the measured noise when larger"
     gy, gx = np.gradient(terrain.data.astype(np.float64), s.cell)
     gradient = Raster(np.hypot(gx, gy), terrain.transform)
-    height = xyz[:, 2] - terrain.sample(xyz[:, 0], xyz[:, 1])
+    height = np.empty(len(xyz))
+    for start in range(0, len(xyz), SAMPLE_CHUNK):  # bilinear sampling makes ~15 temporaries per point
+        part = slice(start, start + SAMPLE_CHUNK)
+        height[part] = xyz[part, 2] - terrain.sample(xyz[part, 0], xyz[part, 1])
     off = np.abs(height)
     is_ground = off <= threshold
     # the slope term only decides the points between the bare threshold and the widest
