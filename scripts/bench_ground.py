@@ -1,11 +1,16 @@
-"""Benchmark: recon3d's ground filter against CSF (cloth simulation filter).
+"""Benchmark: recon3d's ground filter against PDAL's SMRF and CSF (cloth simulation filter).
 
 For every ``*.las`` / ``*.laz`` file in ``../shared/data/lidar`` (relative to the
-repository root) three filters are scored against the provider's classes:
+repository root) four filters are scored against the provider's classes:
 
 ``recon3d``
     :func:`recon3d.terrain.ground.classify_ground` with ``GroundConfig()`` (automatic
     defaults) and the automatic DSM cell as ``cell``, as the pipeline calls it.
+``pdal_smrf``
+    PDAL's ``filters.smrf`` with its defaults, after ``filters.assign`` clears the
+    provider's classes; its time is the whole ``pdal pipeline`` process (read, filter,
+    write). PDAL is a peer only: ``apt-get install -y pdal`` (Debian 13+, Ubuntu) or
+    conda-forge; without it a full run refuses unless ``--no-pdal`` is given.
 ``csf``
     CSF (Zhang et al., 2016; the ``cloth-simulation-filter`` package) with the defaults
     of its constructor, read from ``CSF.CSF().params`` at run time.
@@ -50,6 +55,7 @@ import itertools
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -88,8 +94,9 @@ MASK_CELLS = 2.0
 #: The file ``--quick`` scores when the data folder has it (71k points, classes 2 and 6).
 QUICK_FILE = "ign_village_2154.laz"
 
-#: How to install the peer.
+#: How to install the peers (benchmark-only, not dependencies).
 CSF_INSTALL = "pip install -e '.[bench]'"
+PDAL_INSTALL = "apt-get install -y pdal (Debian 13+, Ubuntu) or conda-forge pdal"
 
 #: CSF's parameters (``interations`` is the package's spelling).
 CSF_PARAMS = (
@@ -217,7 +224,42 @@ class Reference:
 # -- driver -------------------------------------------------------------------------
 
 
-def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True) -> dict:
+def run_pdal_smrf(path: Path, repeat: int = 1) -> tuple[np.ndarray, float]:
+    """PDAL's SMRF with its defaults on the file, the provider's classes cleared first.
+
+    Returns (is_ground, best wall seconds of the whole ``pdal pipeline`` process: read,
+    filter and write of an uncompressed LAS the labels are read back from; points keep
+    their order through these stages).
+    """
+    import subprocess
+    import tempfile
+
+    import laspy
+
+    best, ground = math.inf, None
+    with tempfile.TemporaryDirectory(prefix="bench_ground_pdal_") as tmp:
+        out = Path(tmp) / "smrf.las"
+        spec = Path(tmp) / "smrf.json"
+        spec.write_text(json.dumps({"pipeline": [
+            str(path),
+            {"type": "filters.assign", "value": "Classification = 0"},
+            {"type": "filters.smrf"},
+            {"type": "writers.las", "filename": str(out), "forward": "all"},
+        ]}))
+        for _ in range(repeat):
+            t = time.perf_counter()
+            subprocess.run([shutil.which("pdal") or "pdal", "pipeline", str(spec)], check=True, capture_output=True)
+            best = min(best, time.perf_counter() - t)
+        ground = np.asarray(laspy.read(out).classification) == ASPRS.GROUND
+    return ground, best
+
+
+def have_pdal() -> bool:
+    """True when the ``pdal`` command is on the PATH."""
+    return shutil.which("pdal") is not None
+
+
+def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bool = False) -> dict:
     cloud, units = load(path)
     if cloud.classification is None or not np.any(cloud.classification == ASPRS.GROUND):
         raise InputError(f"{path}: no provider ground (class 2) to score against")
@@ -245,6 +287,11 @@ def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True) -> dict:
         "params": result.params
     }
 
+    if pdal:
+        is_ground, seconds = run_pdal_smrf(path, repeat)
+        if len(is_ground) != len(cloud):
+            raise SystemExit(f"{path.name}: PDAL returned {len(is_ground)} points for {len(cloud)}")
+        record["methods"]["pdal_smrf"] = ref.score(is_ground, seconds) | {"params": {"filters.smrf": "defaults"}}
     if not csf:
         return record
     lo = cloud.xyz.min(axis=0)
@@ -288,6 +335,8 @@ def print_record(rec: dict) -> None:
         if name == "recon3d":
             method = m["params"].get("method")
             desc = method.get("value") if isinstance(method, dict) else method
+        elif name == "pdal_smrf":
+            desc = "filters.smrf defaults (whole pdal process)"
         else:
             p = m["params"]
             desc = (
@@ -299,6 +348,10 @@ def print_record(rec: dict) -> None:
             f"{m['type_ii_percent']:11.2f}{m['kappa']:8.3f}{m['dtm_rms_m']:11.3f}"
             f"{m['points_per_second']:11.3g}  {desc}"
         )
+    if "pdal_smrf" in rec["methods"]:
+        _bench.print_ratios(rec["file"], "PDAL SMRF", rec["methods"]["recon3d"], rec["methods"]["pdal_smrf"], RATIO_KEYS)
+    if "csf_oracle" in rec["methods"]:
+        _bench.print_ratios(rec["file"], "CSF tuned", rec["methods"]["recon3d"], rec["methods"]["csf_oracle"], RATIO_KEYS)
     if "csf" in rec["methods"]:
         _bench.print_ratios(rec["file"], "CSF", rec["methods"]["recon3d"], rec["methods"]["csf"], RATIO_KEYS)
     if "ratios_recon3d_over_oracle" in rec:
@@ -334,12 +387,16 @@ def main() -> None:
         "--repeat", type=int, default=3, help="timed runs of recon3d and CSF default; best kept"
     )
     parser.add_argument("--no-oracle", action="store_true", help="skip the CSF parameter grid")
+    parser.add_argument("--no-pdal", action="store_true", help="run without PDAL's SMRF")
     _bench.add_quick(parser)
     args = parser.parse_args()
     if args.quick:
         args.repeat, args.no_oracle = 1, True
 
     files = data_files(args.data, args.quick)
+    pdal = have_pdal() and not args.no_pdal
+    if not pdal and not args.no_pdal:
+        _bench.peer_missing("PDAL", PDAL_INSTALL, args.quick)
     csf = have_csf()
     if not csf:
         _bench.peer_missing("CSF", CSF_INSTALL, args.quick)
@@ -347,7 +404,7 @@ def main() -> None:
     records = []
     for path in files:
         t = time.perf_counter()
-        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle and csf, csf)
+        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle and csf, csf, pdal)
         rec["wall_seconds"] = time.perf_counter() - t
         print_record(rec)
         records.append(rec)

@@ -83,3 +83,12 @@ def test_peer_missing(capsys):
     with pytest.raises(SystemExit) as stop:
         helpers.peer_missing("CSF", "pip install x", quick=False)
     assert stop.value.code == 1 and "pip install x" in capsys.readouterr().err
+
+
+def test_profile_run_prints_the_top_functions_of_each_terrain_stage(tmp_path):
+    shared("")
+    done = _bench("profile_run.py", "--quick", "--top", "5", cwd=tmp_path)
+    assert done.returncode == 0, f"{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
+    for stage in ("dsm", "ground", "dtm"):
+        block = done.stdout.split(f"== {stage}: ")[1].split("\n== ")[0]
+        assert "tottime" in block and len(block.strip().splitlines()) >= 3, block

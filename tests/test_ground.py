@@ -165,3 +165,43 @@ def test_evaluate_ground_command(tmp_path, delft_run):
         cli, ["evaluate", "ground", str(delft_run.out_dir / "cloud.laz"), "--reference", str(shared(IGN))]
     )
     assert other_crs.exit_code == 1 and "EPSG:7415" in other_crs.output
+
+
+def test_gap_fill_reproduces_a_plane_under_building_sized_gaps():
+    """Linear interpolation is exact on a plane: every gap inside the rims' hull gets it back."""
+    rows, cols = np.indices((300, 240), dtype=np.float64)
+    plane = 0.03 * rows - 0.02 * cols + 5.0
+    known = np.ones(plane.shape, bool)
+    rng = np.random.default_rng(3)
+    for r, c, h, w in zip(rng.integers(5, 270, 40), rng.integers(5, 210, 40), rng.integers(3, 25, 40),
+                          rng.integers(3, 25, 40), strict=True):
+        known[r:r + h, c:c + w] = False  # larger than the gaps the neighbour mean fills
+    filled = dtm_stage.fill_gaps(np.where(known, plane, np.nan), known)
+    assert np.abs(filled - plane).max() < 1e-9
+
+
+def test_gap_fill_interpolates_a_bay_reaching_the_border():
+    """A gap 100 cells deep along the border, closed by one column of ground, is interpolated
+    (no cell falls back to the nearest known value)."""
+    rows, cols = np.indices((200, 200), dtype=np.float64)
+    plane = 0.1 * rows + 0.05 * cols
+    known = np.ones(plane.shape, bool)
+    known[60:140, 100:] = False  # a bay open to the right border
+    known[:, 199] = True  # closed by a last column: the hull spans the bay
+    filled = dtm_stage.fill_gaps(np.where(known, plane, np.nan), known)
+    assert np.abs(filled - plane).max() < 1e-9
+
+
+def test_gap_fill_holdout_on_provider_ground(lidar):
+    """Ground cells hidden in building-sized blobs come back within the terrain's own relief
+    (gap RMS measured before the OpenCV triangulation: Delft 0.068 m, IGN 0.091 m, Autzen 0.96 ft)."""
+    name, cloud, units, grid, _ = lidar
+    mean = dsm_stage.grid_points(cloud.xyz[cloud.classification == 2], grid.transform, grid.shape, reducer="mean")
+    known = np.isfinite(mean)
+    rng = np.random.default_rng(1)
+    seeds = np.zeros(known.shape, bool)
+    seeds.ravel()[rng.choice(known.size, known.size // 400, replace=False)] = True
+    hidden = ndimage.binary_dilation(seeds, iterations=6) & known
+    filled = dtm_stage.fill_gaps(mean, known & ~hidden)
+    rms = float(np.sqrt(np.mean((filled[hidden] - mean[hidden]) ** 2))) * units.vertical
+    assert rms < {"delft": 0.08, "ign": 0.11, "autzen": 0.33}[name]

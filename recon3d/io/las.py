@@ -63,7 +63,10 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     _check_point_count(path)
     try:
         las = laspy.read(path)
-        xyz = np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+        xyz = np.empty((len(las.points), 3))  # filled one axis at a time: one scaled copy alive at once
+        xyz[:, 0] = las.x
+        xyz[:, 1] = las.y
+        xyz[:, 2] = las.z
     except Exception as exc:  # laspy, lazrs and numpy all raise on a damaged file
         raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
     if len(xyz) == 0:

@@ -511,7 +511,8 @@ def make_dsm(s: RunState) -> None:
     _check_grid_memory(s, extent or s.cloud.bounds, res)
     s.dsm = _grid_dsm(s, s.cloud, res, max_hole_cells=int(u.area(hole_area) / res**2),
                       area=common_area if frame_stereo else None, extent=extent)
-    gridded = s.cloud.xyz[dsm_stage.surface_points(s.cloud)]
+    surface = dsm_stage.surface_points(s.cloud)
+    gridded = s.cloud.xyz if surface.all() else s.cloud.xyz[surface]
     count = dsm_stage.grid_points(gridded, s.dsm.transform, s.dsm.shape, reducer="count")
     s.dsm_filled = (count == 0) & np.isfinite(s.dsm.data)
     observed = s.cloud.attributes.get("observed")

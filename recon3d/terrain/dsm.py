@@ -17,6 +17,7 @@ log = logging.getLogger(__name__)
 __all__ = [
     "choose_resolution",
     "fill_small_holes",
+    "cell_index",
     "grid_points",
     "grid_stereo",
     "make_dsm",
@@ -43,13 +44,20 @@ def point_spacing(xy: np.ndarray) -> float:
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     extent = max(float(np.max(hi - lo)), 1e-9)
     cell = extent / 64.0  # coarse enough that every covered cell holds points
+    i = _floor_index(xy[:, 0], lo[0], cell)
+    j = _floor_index(xy[:, 1], lo[1], cell)
+    nx, ny = int(i.max()) + 1, int(j.max()) + 1
+    i *= ny
+    i += j
+    covered = np.bincount(i, minlength=nx * ny).reshape(nx, ny) > 0
     for _ in range(4):
-        ij = np.floor((xy - lo) / cell).astype(np.int64)
-        ny = int(ij[:, 1].max()) + 1
-        occupied = int(np.count_nonzero(np.bincount(ij[:, 0] * ny + ij[:, 1])))
+        occupied = int(np.count_nonzero(covered))
         if n / occupied >= 16 or cell >= extent:
             break
-        cell *= 2.0
+        cell *= 2.0  # a cell twice as wide covers 2 x 2 of the finer cells
+        rows, cols = (covered.shape[0] + 1) // 2 * 2, (covered.shape[1] + 1) // 2 * 2
+        covered = np.pad(covered, ((0, rows - covered.shape[0]), (0, cols - covered.shape[1])))
+        covered = covered.reshape(rows // 2, 2, cols // 2, 2).any(axis=(1, 3))
     return math.sqrt(occupied * cell * cell / n)
 
 
@@ -86,11 +94,10 @@ def grid_points(
         NaN in cells without points (0 for "count").
     """
     rows, cols = shape
-    col = np.floor((xyz[:, 0] - transform.c) / transform.a).astype(np.int64)
-    row = np.floor((xyz[:, 1] - transform.f) / transform.e).astype(np.int64)
-    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-    idx = row[ok] * cols + col[ok]
-    z = xyz[ok, 2]
+    idx, ok = cell_index(xyz, transform, shape)
+    z = xyz[:, 2]
+    if ok is not None:
+        idx, z = idx[ok], z[ok]
     if reducer == "count":
         return np.bincount(idx, minlength=rows * cols).reshape(shape).astype(np.float64)
     if reducer == "mean":
@@ -102,6 +109,40 @@ def grid_points(
     (np.maximum if reducer == "max" else np.minimum).at(out, idx, z)
     out[~np.isfinite(out)] = np.nan
     return out.reshape(shape)
+
+
+def cell_index(xyz: np.ndarray, transform, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Flat cell index (row * cols + col) of each point, and which points fall on the grid.
+
+    Parameters
+    ----------
+    xyz : (n, 2+) float
+    transform : affine.Affine
+    shape : (rows, cols)
+
+    Returns
+    -------
+    idx : (n,) int64
+        Meaningless where ``ok`` is False.
+    ok : (n,) bool or None
+        None when every point is on the grid (the usual case: a grid over the cloud's bounds).
+    """
+    rows, cols = shape
+    col = _floor_index(xyz[:, 0], transform.c, transform.a)
+    row = _floor_index(xyz[:, 1], transform.f, transform.e)
+    # negative indices wrap to huge unsigned ones: one comparison per axis tests both ends
+    ok = (col.view(np.uint64) < cols) & (row.view(np.uint64) < rows)
+    row *= cols
+    row += col
+    return row, None if ok.all() else ok
+
+
+def _floor_index(v: np.ndarray, origin: float, step: float) -> np.ndarray:
+    """(n,) int64 floor((v - origin) / step), with one temporary."""
+    t = np.subtract(v, origin)
+    t /= step
+    np.floor(t, out=t)
+    return t.astype(np.int64)
 
 
 def grid_stereo(
@@ -249,7 +290,7 @@ def make_dsm(
     bounds as the area of the grid. ``per_source`` as in :func:`grid_stereo`.
     """
     keep = surface_points(cloud)
-    xyz = cloud.xyz[keep]
+    xyz = cloud.xyz if keep.all() else cloud.xyz[keep]  # no copy of the cloud when it has no noise
     lo, hi = cloud.bounds if extent is None else extent
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
     if observed is None:

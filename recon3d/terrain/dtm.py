@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
-from scipy import interpolate, ndimage
-from scipy.spatial import QhullError
-from threadpoolctl import threadpool_limits
+from scipy import ndimage
 
 from recon3d.core.raster import Raster
 from recon3d.errors import InputError
@@ -44,16 +43,142 @@ def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
         return out
     rim = known & ndimage.binary_dilation(gaps)  # 4-connected rim: fewer vertices, same planes
     r, c = np.nonzero(rim)
-    gr, gc = np.nonzero(gaps)
-    try:
-        # scipy locates points with one small LAPACK call per triangle; multithreaded
-        # BLAS turns that into minutes of thread contention when two processes run
-        with threadpool_limits(1, user_api="blas"):
-            interp = interpolate.LinearNDInterpolator(np.column_stack([r, c]), out[r, c])
-            out[gr, gc] = interp(np.column_stack([gr, gc]))
-    except QhullError:  # rim cells all on one line: nothing to triangulate
-        pass
+    triangles = _delaunay(r, c)
+    if len(triangles):
+        _rasterise_planes(out, gaps, np.column_stack([r, c])[triangles], out[r, c][triangles])
     return fill_nearest(out)
+
+
+#: Distance of OpenCV's helper vertices, in extents of the points (integer coordinates
+#: up to 2^24 / HULL_MARGIN stay exact in its single precision).
+HULL_MARGIN = 1000
+
+
+def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(t, 3) int64 vertex indices of the Delaunay triangles of the integer points (r, c).
+
+    OpenCV's incremental Delaunay (Subdiv2D) is used rather than Qhull: on grid points,
+    cocircular by the thousand, Qhull spends seconds on degeneracies that the
+    incremental algorithm resolves as it goes (0.2 s against 1.5 s for 110k points).
+    Triangles touching its three outer helper vertices are not returned; those stand
+    outside a rectangle ``HULL_MARGIN`` times the points' extent on every side, far
+    enough not to cut off the thin triangles of the convex hull. An empty array when the
+    points are all on one line.
+    """
+    if len(r) < 3:
+        return np.zeros((0, 3), np.int64)
+    rows, cols = int(r.max()) + 3, int(c.max()) + 3
+    margin = HULL_MARGIN * max(rows, cols)
+    subdiv = cv2.Subdiv2D((-margin, -margin, rows + 2 * margin, cols + 2 * margin))
+    subdiv.insert(np.column_stack([r, c]).astype(np.float32))
+    corners = subdiv.getTriangleList().reshape(-1, 3, 2)
+    if not len(corners):
+        return np.zeros((0, 3), np.int64)
+    index = np.full((rows, cols), -1, np.int64)
+    index[r, c] = np.arange(len(r))
+    ij = np.rint(corners).astype(np.int64)
+    inside = ((ij >= 0) & (ij < [rows, cols])).all(axis=(1, 2))
+    ij = ij[inside]
+    triangles = index[ij[..., 0], ij[..., 1]]
+    return triangles[(triangles >= 0).all(axis=1)]
+
+
+#: Candidate cells rasterised at a time, bounding memory.
+RASTER_CHUNK = 1 << 20
+
+
+def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, heights: np.ndarray) -> None:
+    """Set ``out`` at the ``todo`` cells inside each triangle to the triangle's plane, in place.
+
+    Parameters
+    ----------
+    out : (rows, cols) float64
+    todo : (rows, cols) bool
+        Cells to fill; others are left as they are.
+    corners : (t, 3, 2) int
+        Triangle vertices as (row, col) cells.
+    heights : (t, 3) float
+        Heights at the vertices.
+
+    Each triangle is walked row by row (a scanline fill) between its long edge (top to
+    bottom vertex) and the short edge of that row. With integer vertices a cell that is
+    not on an edge lies at least 1 / rows columns inside or outside it, far more than the
+    rounding the bounds are widened by, so a cell on a shared edge is in both triangles
+    (and takes either's plane, equal there) and no other cell is in two.
+    """
+    v = corners.astype(np.float64)
+    order = np.argsort(v[..., 0], axis=1, kind="stable")  # vertices top to bottom
+    v = np.take_along_axis(v, order[..., None], axis=1)
+    z = np.take_along_axis(heights.astype(np.float64), order, axis=1)
+    r, c = v[..., 0], v[..., 1]
+    area = (r[:, 1] - r[:, 0]) * (c[:, 2] - c[:, 0]) - (c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0])
+    keep = area != 0
+    r, c, z, area = r[keep], c[keep], z[keep], area[keep]
+    plane = _planes(r, c, z, area)
+    top = r[:, 0].astype(np.int64)
+    height = r[:, 2].astype(np.int64) - top + 1
+    first, last = _scanline_spans(r, c, height)
+    count = np.maximum(last - first + 1, 0)
+    tri = np.repeat(np.arange(len(r)), height)  # one (triangle, row) pair each
+    row = np.repeat(top - (np.cumsum(height) - height), height) + np.arange(len(tri))
+    for start, stop in _chunks(np.cumsum(count)):
+        n = count[start:stop]
+        col = np.repeat(first[start:stop] - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
+        i = np.repeat(row[start:stop], n)
+        hit = np.flatnonzero(todo[i, col])
+        t, i, col = np.repeat(tri[start:stop], n)[hit], i[hit], col[hit]
+        out[i, col] = plane[t, 0] * i + plane[t, 1] * col + plane[t, 2]
+
+
+#: Widening of the column bounds of a row, far below the 1 / rows columns that separate
+#: a cell off an edge from it.
+SPAN_SLACK = 1e-7
+
+
+def _scanline_spans(r: np.ndarray, c: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) int first and last column of each row of each triangle, rows in order.
+
+    Parameters
+    ----------
+    r, c : (t, 3) float
+        Vertex rows and columns, vertices sorted by row (top, middle, bottom).
+    height : (t,) int
+        Rows each triangle spans (bottom - top + 1).
+    """
+    def per_row(values):
+        return np.repeat(values, height)
+
+    drop = np.arange(int(height.sum())) - per_row(np.cumsum(height) - height)  # rows below the top vertex
+    row = per_row(r[:, 0]) + drop
+    long_slope = (c[:, 2] - c[:, 0]) / (r[:, 2] - r[:, 0])
+    upper_rows, lower_rows = r[:, 1] - r[:, 0], r[:, 2] - r[:, 1]
+    upper_slope = (c[:, 1] - c[:, 0]) / np.where(upper_rows == 0, 1.0, upper_rows)
+    lower_slope = (c[:, 2] - c[:, 1]) / np.where(lower_rows == 0, 1.0, lower_rows)
+    along_long = per_row(c[:, 0]) + per_row(long_slope) * drop
+    # above the middle vertex the short edge is top-middle, from it down middle-bottom
+    # (a flat bottom edge is met on the last row only, where top-middle ends at the middle vertex)
+    upper = (row < per_row(r[:, 1])) | per_row(lower_rows == 0)
+    along_short = np.where(upper, per_row(c[:, 0]) + per_row(upper_slope) * drop,
+                           per_row(c[:, 1]) + per_row(lower_slope) * (row - per_row(r[:, 1])))
+    lo, hi = np.minimum(along_long, along_short), np.maximum(along_long, along_short)
+    return np.ceil(lo - SPAN_SLACK).astype(np.int64), np.floor(hi + SPAN_SLACK).astype(np.int64)
+
+
+def _planes(r: np.ndarray, c: np.ndarray, z: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """(t, 3) coefficients (a, b, d) of the planes z = a row + b col + d through (t, 3) vertices."""
+    dr1, dc1, dz1 = r[:, 1] - r[:, 0], c[:, 1] - c[:, 0], z[:, 1] - z[:, 0]
+    dr2, dc2, dz2 = r[:, 2] - r[:, 0], c[:, 2] - c[:, 0], z[:, 2] - z[:, 0]
+    a = (dz1 * dc2 - dz2 * dc1) / area
+    b = (dr1 * dz2 - dr2 * dz1) / area
+    return np.column_stack([a, b, z[:, 0] - a * r[:, 0] - b * c[:, 0]])
+
+
+def _chunks(ends: np.ndarray):
+    """(start, stop) ranges of pairs whose cells (cumulative counts ``ends``) add up to about RASTER_CHUNK each."""
+    total = int(ends[-1]) if len(ends) else 0
+    cuts = np.searchsorted(ends, np.arange(RASTER_CHUNK, total, RASTER_CHUNK), side="right")
+    bounds = np.unique(np.r_[0, cuts, len(ends)])
+    return zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
 
 
 def fill_nearest(data: np.ndarray) -> np.ndarray:

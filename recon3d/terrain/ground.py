@@ -174,7 +174,7 @@ def _trusted_points(cloud: PointCloud, params: dict) -> np.ndarray:
         cut = np.percentile(score, 10)
         keep &= score >= cut
         params["quality_cut"] = {"value": float(cut), "reason": "stereo matching score: worst 10 % not used"}
-    return cloud.xyz[keep] if keep.any() else cloud.xyz
+    return cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
 
 
 def minimum_surface(
@@ -296,6 +296,10 @@ METHODS: dict[str, Callable[[MinimumSurface, Units], Raster]] = {
 # --------------------------------------------------------------------------- helpers
 
 
+#: Points sampled on the terrain at a time: bounds the sampling's temporaries to ~100 MB.
+SAMPLE_CHUNK = 1 << 20
+
+
 def _points_near(
     xyz: np.ndarray, terrain: Raster, s: MinimumSurface, config: GroundConfig, units: Units
 ) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -311,11 +315,18 @@ def _points_near(
         why = "0.5 m, or 3 x the measured noise when larger"
     gy, gx = np.gradient(terrain.data.astype(np.float64), s.cell)
     gradient = Raster(np.hypot(gx, gy), terrain.transform)
-    zt = terrain.sample(xyz[:, 0], xyz[:, 1])
-    g = gradient.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
-    tolerance = threshold + config.scalar * np.nan_to_num(g) * s.cell
-    height = xyz[:, 2] - zt
-    is_ground = np.abs(height) <= tolerance
+    height = np.empty(len(xyz))
+    for start in range(0, len(xyz), SAMPLE_CHUNK):  # bilinear sampling makes ~15 temporaries per point
+        part = slice(start, start + SAMPLE_CHUNK)
+        height[part] = xyz[part, 2] - terrain.sample(xyz[part, 0], xyz[part, 1])
+    off = np.abs(height)
+    is_ground = off <= threshold
+    # the slope term only decides the points between the bare threshold and the widest
+    # tolerance; sampling the gradient at those alone gives the same labels
+    widest = threshold + max(config.scalar, 0.0) * float(np.nanmax(gradient.data, initial=0.0)) * s.cell
+    undecided = np.flatnonzero(~is_ground & (off <= widest)) if config.scalar >= 0 else np.arange(len(xyz))
+    g = gradient.sample(xyz[undecided, 0], xyz[undecided, 1], bilinear=False)
+    is_ground[undecided] = off[undecided] <= threshold + config.scalar * np.nan_to_num(g) * s.cell
     band = max(units.height(0.3), 4.0 * s.noise)
     for_dtm = is_ground & (height <= band)
     return is_ground, for_dtm, {
