@@ -23,13 +23,21 @@ def point_classes(
     *,
     vegetation: np.ndarray | None = None,
     with_solid: np.ndarray | None = None,
+    roof_surface: np.ndarray | None = None,
+    roughness: np.ndarray | None = None,
+    tolerance: float = 0.0,
 ) -> np.ndarray:
     """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
 
     A point is building when it lies in a footprint cell (``labels`` > 0, and the
     footprint has a solid when ``with_solid`` is given), is not ground nor vegetation,
     and stands at least ``min_height / 2`` above the terrain. Vegetation wins over
-    building: a crown over a roof stays a tree.
+    building: a crown over a roof stays a tree. With the model's roof surface under
+    each point (``roof_surface``), a point more than ``tolerance`` above it is no
+    building either, whatever the vegetation test said: a crown overhanging the roof,
+    a tree in a courtyard. Such a point off any local plane (``roughness`` above
+    ``tolerance``) is vegetation (5), else other (1: an antenna, a chimney the model
+    leaves out).
 
     Parameters
     ----------
@@ -44,6 +52,14 @@ def point_classes(
     vegetation : (n,) bool, optional
     with_solid : (m + 1,) bool, optional
         Per label value (index 0 = background) whether that footprint counts.
+    roof_surface : (n,) float, optional
+        Height of the model's roof above each point's (x, y); NaN where no roof was
+        modelled (the rule is then not applied).
+    roughness : (n,) float, optional
+        Per-point RMS about the local plane (NaN: not measured).
+    tolerance : float
+        How far above the roof surface a roof point may lie (CRS height units): a few
+        times the noise of the roof points.
     """
     xyz = cloud.xyz
     classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -57,6 +73,12 @@ def point_classes(
     building = in_building & ~is_ground & (np.nan_to_num(above, nan=-np.inf) >= units.height(config.min_height / 2))
     if vegetation is not None:
         vegetation = np.asarray(vegetation, bool) & ~is_ground
+    if roof_surface is not None:
+        over = building & (xyz[:, 2] > np.nan_to_num(np.asarray(roof_surface, np.float64), nan=np.inf) + tolerance)
+        building &= ~over
+        rough = over if roughness is None else over & (np.nan_to_num(roughness, nan=np.inf) > tolerance)
+        vegetation = rough if vegetation is None else vegetation | rough
+    if vegetation is not None:
         building &= ~vegetation
         classes[vegetation] = ASPRS.HIGH_VEGETATION
     classes[building] = ASPRS.BUILDING
