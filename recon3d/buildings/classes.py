@@ -26,6 +26,7 @@ def point_classes(
     roof_surface: np.ndarray | None = None,
     roughness: np.ndarray | None = None,
     tolerance: float = 0.0,
+    plane_tolerance: float | None = None,
 ) -> np.ndarray:
     """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
 
@@ -36,8 +37,9 @@ def point_classes(
     each point (``roof_surface``), a point more than ``tolerance`` above it is no
     building either, whatever the vegetation test said: a crown overhanging the roof,
     a tree in a courtyard. Such a point off any local plane (``roughness`` above
-    ``tolerance``) is vegetation (5), else other (1: an antenna, a chimney the model
-    leaves out).
+    ``plane_tolerance``) is vegetation (5), else other (1: an antenna, a chimney the
+    model leaves out). A point more than ``tolerance`` below the roof and off any local
+    plane is a crown against a wall (walls are planes): vegetation too.
 
     Parameters
     ----------
@@ -60,6 +62,9 @@ def point_classes(
     tolerance : float
         How far above the roof surface a roof point may lie (CRS height units): a few
         times the noise of the roof points.
+    plane_tolerance : float, optional
+        RMS about the local plane up to which a point lies on a plane (default
+        ``tolerance``).
     """
     xyz = cloud.xyz
     classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -74,9 +79,16 @@ def point_classes(
     if vegetation is not None:
         vegetation = np.asarray(vegetation, bool) & ~is_ground
     if roof_surface is not None:
-        over = building & (xyz[:, 2] > np.nan_to_num(np.asarray(roof_surface, np.float64), nan=np.inf) + tolerance)
+        roof = np.asarray(roof_surface, np.float64)
+        over = building & (xyz[:, 2] > np.nan_to_num(roof, nan=np.inf) + tolerance)
         building &= ~over
-        rough = over if roughness is None else over & (np.nan_to_num(roughness, nan=np.inf) > tolerance)
+        if roughness is None:
+            rough = over
+        else:
+            off_plane = np.nan_to_num(roughness, nan=0.0) > (tolerance if plane_tolerance is None else plane_tolerance)
+            under = building & (xyz[:, 2] < np.nan_to_num(roof, nan=-np.inf) - tolerance) & off_plane
+            building &= ~under
+            rough = (over & off_plane) | under
         vegetation = rough if vegetation is None else vegetation | rough
     if vegetation is not None:
         building &= ~vegetation

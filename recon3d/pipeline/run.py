@@ -932,6 +932,7 @@ def evaluate_products(s: RunState) -> None:
     s.point_classes = classes.point_classes(
         s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid,
         roof_surface=_roof_surface(s), roughness=s.roughness, tolerance=max(u.height(0.25), 2.0 * s.plane_tolerance),
+        plane_tolerance=s.plane_tolerance,
     )
     if s.auto.get("dsm.hidden_ground", {}).get("value"):
         # the guesses over hidden ground stay in the cloud, above the DSM that replaced them
