@@ -123,12 +123,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--start", type=int, default=0, help="first seed")
     parser.add_argument("--cases", type=int, default=40)
+    parser.add_argument("--seeds", type=int, nargs="+", help="these seeds instead of --start/--cases")
     parser.add_argument("--real", action="store_true", help="also the shared real tiles")
     parser.add_argument("--quick", action="store_true", help="two seeds only (the suite runs this)")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args()
     logging.disable(logging.WARNING)
-    seeds = [8, 5] if args.quick else list(range(args.start, args.start + args.cases))
+    seeds = [8, 5] if args.quick else args.seeds or list(range(args.start, args.start + args.cases))
     rows = []
     print(f"{'seed':>5} {'group':>7} {'s':>6} {'bldg':>6} {'false':>5} {'compl':>6} {'corr':>6} {'veg->bldg %':>11}")
     for seed in seeds:

@@ -90,3 +90,19 @@ def test_points_above_the_roof_are_not_building():
     inside = (xy >= 2.5).all(axis=1) & (xy < 17.5).all(axis=1)
     assert np.all(out[:300][inside[:300]] == ASPRS.BUILDING)
     assert np.all(out[300:][inside[300:]] == ASPRS.HIGH_VEGETATION)
+
+
+def test_points_a_roof_would_hide_are_not_building():
+    """Below the modelled roof, deep inside the outline, a scan sees no building: a
+    crown the footprint took in; near the outline, planar points are its walls."""
+    grid = _raster(np.zeros((40, 40)))
+    labels = np.zeros((40, 40), np.int32)
+    labels[4:36, 4:36] = 1  # x, y 2..18
+    xy = np.array([[10.0, 10.0], [10.0, 10.2], [2.3, 10.0], [2.3, 10.2]])
+    cloud = PointCloud(np.column_stack([xy, [3.0, 3.0, 3.0, 3.0]]))  # 3 m under a 6 m roof
+    out = classes.point_classes(
+        cloud, np.zeros(4, bool), labels, grid, grid, CFG, UNITS,
+        roof_surface=np.full(4, 6.0), roughness=np.array([0.02, 0.4, 0.02, 0.4]), tolerance=0.25, plane_tolerance=0.1,
+    )
+    assert out[0] != ASPRS.BUILDING and out[1] == ASPRS.HIGH_VEGETATION  # deep inside: hidden by a roof
+    assert out[2] == ASPRS.BUILDING and out[3] == ASPRS.HIGH_VEGETATION  # at the outline: a wall, a crown

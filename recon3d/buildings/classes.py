@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
@@ -79,20 +80,59 @@ def point_classes(
     if vegetation is not None:
         vegetation = np.asarray(vegetation, bool) & ~is_ground
     if roof_surface is not None:
-        roof = np.asarray(roof_surface, np.float64)
-        over = building & (xyz[:, 2] > np.nan_to_num(roof, nan=np.inf) + tolerance)
-        building &= ~over
-        if roughness is None:
-            rough = over
-        else:
-            off_plane = np.nan_to_num(roughness, nan=0.0) > (tolerance if plane_tolerance is None else plane_tolerance)
-            under = building & (xyz[:, 2] < np.nan_to_num(roof, nan=-np.inf) - tolerance) & off_plane
-            building &= ~under
-            rough = (over & off_plane) | under
-        vegetation = rough if vegetation is None else vegetation | rough
+        # how far inside its footprint each point lies: walls stand on the outline
+        inside = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * grid.resolution
+        depth = np.zeros(len(cloud))
+        depth[ok] = inside[row[ok], col[ok]]
+        off_roof, crown = _off_roof(
+            xyz[:, 2], np.asarray(roof_surface, np.float64), roughness, depth, tolerance,
+            tolerance if plane_tolerance is None else plane_tolerance, units.length(1.0),
+        )
+        building &= ~off_roof
+        crown &= building | off_roof
+        vegetation = crown if vegetation is None else vegetation | crown
     if vegetation is not None:
         building &= ~vegetation
         classes[vegetation] = ASPRS.HIGH_VEGETATION
     classes[building] = ASPRS.BUILDING
     classes[is_ground] = ASPRS.GROUND
     return classes
+
+
+def _off_roof(
+    z: np.ndarray,
+    roof: np.ndarray,
+    roughness: np.ndarray | None,
+    depth: np.ndarray,
+    tolerance: float,
+    plane_tolerance: float,
+    wall_distance: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a footprint that are not on its roof, and those of them that are crowns.
+
+    Parameters
+    ----------
+    z, roof : (n,) float
+        Point heights and the roof surface above each (NaN: no roof modelled).
+    roughness : (n,) float or None
+    depth : (n,) float
+        Distance of each point's cell from the footprint's outline (CRS units).
+    tolerance, plane_tolerance, wall_distance : float
+
+    Returns
+    -------
+    off_roof : (n,) bool
+        More than ``tolerance`` above the roof; or more than ``tolerance`` below it and
+        either off any local plane or farther than ``wall_distance`` inside the
+        outline (a roof hides what lies below it: only walls are seen there).
+    crown : (n,) bool
+        The off-roof points that are off any local plane (all of those above the roof
+        without ``roughness``).
+    """
+    over = z > np.nan_to_num(roof, nan=np.inf) + tolerance
+    if roughness is None:
+        return over, over.copy()
+    off_plane = np.nan_to_num(roughness, nan=0.0) > plane_tolerance
+    under = (z < np.nan_to_num(roof, nan=-np.inf) - tolerance) & (off_plane | (depth > wall_distance))
+    off_roof = over | under
+    return off_roof, off_roof & (off_plane | under)
