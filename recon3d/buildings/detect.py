@@ -257,8 +257,13 @@ VEGETATION_BLOB_SHARE = 0.3
 ROUGH_VEGETATION_SHARE = 0.05
 #: Mean share of a blob's upper points on local planes below which it is a cluster of
 #: crowns, with or without vegetation evidence: roofs are planes, crowns are not (on
-#: the random LiDAR family, tree blobs measure 0 to 0.60 and buildings 0.80 to 1).
-MIN_PLANAR_SHARE = 0.62
+#: the random LiDAR family, tree blobs measure 0 to 0.60, buildings 0.80 to 1 and down
+#: to 0.54 at 1 point per m2, where a neighbourhood spans a gable's ridge).
+MIN_PLANAR_SHARE = 0.5
+#: Below this planar share, a blob with any vegetation point at all is a tree.
+PLANAR_SHARE_WITH_EVIDENCE = 0.65
+#: Mean share of vegetation points that counts as "any" for PLANAR_SHARE_WITH_EVIDENCE.
+SOME_VEGETATION_SHARE = 0.005
 
 
 def find_blobs(
@@ -275,7 +280,8 @@ def find_blobs(
     share of planar points per cell (``planar``), a blob whose inner cells hold on
     average fewer than :data:`MIN_PLANAR_SHARE` points on local planes is vegetation
     too, evidence or not: a dense cluster of crowns scanned without multiple returns or
-    colours (a steep roof's points still lie on planes).
+    colours (a steep roof's points still lie on planes); so is one below
+    :data:`PLANAR_SHARE_WITH_EVIDENCE` with any vegetation point.
 
     Parameters
     ----------
@@ -345,7 +351,9 @@ def find_blobs(
             reason.append("vegetation")
         elif veg_share[i] > VEGETATION_BLOB_SHARE or (rough and veg_share[i] > ROUGH_VEGETATION_SHARE):
             reason.append("vegetation")
-        elif planar_share[i] < MIN_PLANAR_SHARE:
+        elif planar_share[i] < MIN_PLANAR_SHARE or (
+            planar_share[i] < PLANAR_SHARE_WITH_EVIDENCE and veg_share[i] > SOME_VEGETATION_SHARE
+        ):
             reason.append("vegetation")
         else:
             reason.append("")
