@@ -264,10 +264,19 @@ MIN_PLANAR_SHARE = 0.5
 PLANAR_SHARE_WITH_EVIDENCE = 0.65
 #: Mean share of vegetation points that counts as "any" for PLANAR_SHARE_WITH_EVIDENCE.
 SOME_VEGETATION_SHARE = 0.005
+#: Points per square metre below which both planar shares are lowered in proportion: a
+#: point's 10 neighbours then span more than 1.3 m, across ridges and eaves.
+PLANAR_DENSITY = 2.0
 
 
 def find_blobs(
-    ndsm: Raster, vegetation: np.ndarray, config: BuildingsConfig, units: Units, *, planar: np.ndarray | None = None
+    ndsm: Raster,
+    vegetation: np.ndarray,
+    config: BuildingsConfig,
+    units: Units,
+    *,
+    planar: np.ndarray | None = None,
+    point_density: float | None = None,
 ) -> Blobs:
     """Building candidates: the mask, split at height jumps, small parts merged, trees rejected.
 
@@ -293,6 +302,9 @@ def find_blobs(
     units : Units
     planar : (rows, cols) float, optional
         Share of each cell's upper points on a local plane (:func:`planar_cells`).
+    point_density : float, optional
+        Points per square metre of the survey; below :data:`PLANAR_DENSITY` the planar
+        shares needed fall in proportion.
     """
     smooth_cells = _smooth_cells(ndsm, config, units)
     mask = _building_mask(ndsm, vegetation, config, units, smooth_cells)
@@ -342,6 +354,8 @@ def find_blobs(
     edge = np.zeros(n + 1, bool)
     edge[np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))] = True
     need = np.where(edge[1:], min_cells / 4.0, min_cells)
+    scale = 1.0 if point_density is None else min(1.0, point_density / PLANAR_DENSITY)
+    min_planar, planar_with_evidence = MIN_PLANAR_SHARE * scale, PLANAR_SHARE_WITH_EVIDENCE * scale
     reason = []
     for i in range(n):
         rough = smooth_share[i] < config.min_smooth_share
@@ -351,8 +365,8 @@ def find_blobs(
             reason.append("vegetation")
         elif veg_share[i] > VEGETATION_BLOB_SHARE or (rough and veg_share[i] > ROUGH_VEGETATION_SHARE):
             reason.append("vegetation")
-        elif planar_share[i] < MIN_PLANAR_SHARE or (
-            planar_share[i] < PLANAR_SHARE_WITH_EVIDENCE and veg_share[i] > SOME_VEGETATION_SHARE
+        elif planar_share[i] < min_planar or (
+            planar_share[i] < planar_with_evidence and veg_share[i] > SOME_VEGETATION_SHARE
         ):
             reason.append("vegetation")
         else:
@@ -405,6 +419,7 @@ def detect_buildings(
     dtm: Raster | None = None,
     point_vegetation: np.ndarray | None = None,
     planar: np.ndarray | None = None,
+    point_density: float | None = None,
 ) -> list[shapely.Polygon]:
     """Footprint polygons of building blobs, largest first.
 
@@ -433,13 +448,15 @@ def detect_buildings(
     planar : (rows, cols) float, optional
         Share of each cell's upper points on a local plane (:func:`planar_cells`): blobs
         mostly off planes are trees (:func:`find_blobs`).
+    point_density : float, optional
+        Points per square metre (:func:`find_blobs`).
 
     Returns
     -------
     list of shapely.Polygon
         Valid polygons, counter-clockwise exteriors.
     """
-    blobs = find_blobs(ndsm, vegetation, config, units, planar=planar)
+    blobs = find_blobs(ndsm, vegetation, config, units, planar=planar, point_density=point_density)
     labels = np.where(np.r_[False, blobs.kept][blobs.labels], blobs.labels, 0)
     transform, res = ndsm.transform, ndsm.resolution
     if cloud is not None and dtm is not None and labels.any():

@@ -251,11 +251,12 @@ def vegetation_cells(
 def plane_tolerance(config: BuildingsConfig, units: Units, noise: float = 0.0) -> float:
     """RMS about the local plane (CRS units) up to which a point lies on a plane.
 
-    Twice ``vegetation_roughness`` or 2.5 x the cloud's height ``noise``, whichever is
+    Twice ``vegetation_roughness`` or 1.5 x the cloud's height ``noise``, whichever is
     larger: a roof scanned with noise s has an RMS of about 0.85 s about its best local
-    plane, a crown's leaves scatter tens of centimetres.
+    plane, a crown's leaves scatter 0.1 to 0.3 m (more would let crowns of a noisy
+    survey pass as planes).
     """
-    return max(2.0 * units.height(config.vegetation_roughness), 2.5 * noise)
+    return max(2.0 * units.height(config.vegetation_roughness), 1.5 * noise)
 
 
 def planar_cells(cloud: PointCloud, grid: Raster, roughness: np.ndarray, tolerance: float) -> np.ndarray:

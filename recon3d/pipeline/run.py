@@ -780,7 +780,8 @@ def find_buildings(s: RunState) -> None:
         if s.satellite_paths is not None and s.dsm_unobserved is not None:  # only where matched
             ndsm = Raster(np.where(s.dsm_unobserved, np.nan, s.ndsm.data), s.ndsm.transform, s.ndsm.crs, s.ndsm.tags)
         polygons = detect.detect_buildings(
-            ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation, planar=planar
+            ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation, planar=planar,
+            point_density=_point_density(s),
         )
         if s.satellite_paths is not None and s.dsm_unobserved is not None:
             polygons = _on_observed_ground(s, polygons)
@@ -896,6 +897,14 @@ def _build_lods(job: tuple) -> lod.LodResult:
     """One building's solids (a worker process runs this for :func:`build_solids`)."""
     poly, pts, ground_z, roof_z, frame, config, units = job
     return lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
+
+
+def _point_density(s: RunState) -> float:
+    """First returns per square metre over the DSM cells that hold data."""
+    a = s.cloud.attributes
+    first = np.count_nonzero(np.asarray(a["return_number"]) <= 1) if "return_number" in a else len(s.cloud)
+    area = np.count_nonzero(np.isfinite(s.dsm.data)) * s.units.area(1.0) ** -1 * s.dsm.resolution**2
+    return float(first / area) if area > 0 else 0.0
 
 
 def _roof_surface(s: RunState) -> np.ndarray | None:
