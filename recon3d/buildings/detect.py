@@ -257,11 +257,11 @@ VEGETATION_BLOB_SHARE = 0.3
 ROUGH_VEGETATION_SHARE = 0.05
 #: Mean share of a blob's upper points on local planes below which it is a cluster of
 #: crowns, with or without vegetation evidence: roofs are planes, crowns are not (on
-#: the random LiDAR family, tree blobs measure 0 to 0.60, buildings 0.80 to 1 and down
-#: to 0.54 at 1 point per m2, where a neighbourhood spans a gable's ridge).
+#: the random LiDAR family from 2 points per m2, tree blobs measure 0 to 0.40, buildings
+#: 0.64 to 1, the lowest half under a crown).
 MIN_PLANAR_SHARE = 0.5
 #: Below this planar share, a blob with any vegetation point at all is a tree.
-PLANAR_SHARE_WITH_EVIDENCE = 0.65
+PLANAR_SHARE_WITH_EVIDENCE = 0.55
 #: Mean share of vegetation points that counts as "any" for PLANAR_SHARE_WITH_EVIDENCE.
 SOME_VEGETATION_SHARE = 0.005
 #: Points per square metre below which both planar shares are lowered in proportion: a
