@@ -59,7 +59,7 @@ def test_trees_are_not_buildings_held_out(tmp_path, seed, group, before):
     assert row["buildings"] == row["true_buildings"] and row["false_detections"] == 0
     assert row["completeness"] >= 99.0  # measured 99.0-100 %
     assert row["class_completeness"] >= 97.0  # measured 97.6-99.9 %
-    # measured 88.6-95.5 % (before: 52.6-81.5 % against the true footprints): crowns
+    # measured 88.6-95.5 % (before, against the true footprints: 52.6-83.7 %): crowns
     # against walls still widen some outlines
     assert row["class_correctness"] >= 87.0
     # measured 0-3.2 % (before: 20.8-71.6 %)
