@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
@@ -23,13 +24,23 @@ def point_classes(
     *,
     vegetation: np.ndarray | None = None,
     with_solid: np.ndarray | None = None,
+    roof_surface: np.ndarray | None = None,
+    roughness: np.ndarray | None = None,
+    tolerance: float = 0.0,
+    plane_tolerance: float | None = None,
 ) -> np.ndarray:
     """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
 
     A point is building when it lies in a footprint cell (``labels`` > 0, and the
     footprint has a solid when ``with_solid`` is given), is not ground nor vegetation,
     and stands at least ``min_height / 2`` above the terrain. Vegetation wins over
-    building: a crown over a roof stays a tree.
+    building: a crown over a roof stays a tree. With the model's roof surface under
+    each point (``roof_surface``), a point more than ``tolerance`` above it is no
+    building either, whatever the vegetation test said: a crown overhanging the roof,
+    a tree in a courtyard. Such a point off any local plane (``roughness`` above
+    ``plane_tolerance``) is vegetation (5), else other (1: an antenna, a chimney the
+    model leaves out). A point more than ``tolerance`` below the roof and off any local
+    plane is a crown against a wall (walls are planes): vegetation too.
 
     Parameters
     ----------
@@ -44,6 +55,17 @@ def point_classes(
     vegetation : (n,) bool, optional
     with_solid : (m + 1,) bool, optional
         Per label value (index 0 = background) whether that footprint counts.
+    roof_surface : (n,) float, optional
+        Height of the model's roof above each point's (x, y); NaN where no roof was
+        modelled (the rule is then not applied).
+    roughness : (n,) float, optional
+        Per-point RMS about the local plane (NaN: not measured).
+    tolerance : float
+        How far above the roof surface a roof point may lie (CRS height units): a few
+        times the noise of the roof points.
+    plane_tolerance : float, optional
+        RMS about the local plane up to which a point lies on a plane (default
+        ``tolerance``).
     """
     xyz = cloud.xyz
     classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -57,8 +79,60 @@ def point_classes(
     building = in_building & ~is_ground & (np.nan_to_num(above, nan=-np.inf) >= units.height(config.min_height / 2))
     if vegetation is not None:
         vegetation = np.asarray(vegetation, bool) & ~is_ground
+    if roof_surface is not None:
+        # how far inside its footprint each point lies: walls stand on the outline
+        inside = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * grid.resolution
+        depth = np.zeros(len(cloud))
+        depth[ok] = inside[row[ok], col[ok]]
+        off_roof, crown = _off_roof(
+            xyz[:, 2], np.asarray(roof_surface, np.float64), roughness, depth, tolerance,
+            tolerance if plane_tolerance is None else plane_tolerance, units.length(1.0),
+        )
+        building &= ~off_roof
+        crown &= building | off_roof
+        vegetation = crown if vegetation is None else vegetation | crown
+    if vegetation is not None:
         building &= ~vegetation
         classes[vegetation] = ASPRS.HIGH_VEGETATION
     classes[building] = ASPRS.BUILDING
     classes[is_ground] = ASPRS.GROUND
     return classes
+
+
+def _off_roof(
+    z: np.ndarray,
+    roof: np.ndarray,
+    roughness: np.ndarray | None,
+    depth: np.ndarray,
+    tolerance: float,
+    plane_tolerance: float,
+    wall_distance: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a footprint that are not on its roof, and those of them that are crowns.
+
+    Parameters
+    ----------
+    z, roof : (n,) float
+        Point heights and the roof surface above each (NaN: no roof modelled).
+    roughness : (n,) float or None
+    depth : (n,) float
+        Distance of each point's cell from the footprint's outline (CRS units).
+    tolerance, plane_tolerance, wall_distance : float
+
+    Returns
+    -------
+    off_roof : (n,) bool
+        More than ``tolerance`` above the roof; or more than ``tolerance`` below it and
+        either off any local plane or farther than ``wall_distance`` inside the
+        outline (a roof hides what lies below it: only walls are seen there).
+    crown : (n,) bool
+        The off-roof points that are off any local plane (all of those above the roof
+        without ``roughness``).
+    """
+    over = z > np.nan_to_num(roof, nan=np.inf) + tolerance
+    if roughness is None:
+        return over, over.copy()
+    off_plane = np.nan_to_num(roughness, nan=0.0) > plane_tolerance
+    under = (z < np.nan_to_num(roof, nan=-np.inf) - tolerance) & (off_plane | (depth > wall_distance))
+    off_roof = over | under
+    return off_roof, off_roof & (off_plane | under)

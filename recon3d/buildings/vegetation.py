@@ -24,7 +24,7 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["classify_vegetation", "point_features", "vegetation_cells", "vegetation_index"]
+__all__ = ["classify_vegetation", "planar_cells", "plane_tolerance", "point_features", "vegetation_cells", "vegetation_index"]
 
 
 def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[str, np.ndarray]:
@@ -105,21 +105,35 @@ GREEN_THRESHOLDS = {"ndvi": 0.3, "exg": 0.05}
 COLOUR_ONLY_THRESHOLDS = {"ndvi": 0.3, "exg": 0.15}
 
 
+#: Share of multi-return echoes among the rough points below which a survey's returns
+#: say little (a dense canopy, a low penetration): the crown's shape is evidence too.
+FEW_RETURNS = 0.05
+
+
 def classify_vegetation(
-    cloud: PointCloud, dtm: Raster, config: BuildingsConfig, units: Units, *, noise: float = 0.0
-) -> np.ndarray:
+    cloud: PointCloud,
+    dtm: Raster,
+    config: BuildingsConfig,
+    units: Units,
+    *,
+    noise: float = 0.0,
+    with_roughness: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """(n,) bool: points of trees and bushes (ASPRS class 5 in cloud.laz).
 
     A point at least ``vegetation_min_height`` above the terrain is vegetation when its
     neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``;
     roofs and walls are planar) and it carries vegetation evidence: an echo of a
     multi-return pulse (leaves let part of the pulse through, roofs do not), or a green
-    colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A coloured cloud without
-    returns (stereo) is judged on colour alone: dense matching smooths tree crowns until
-    they are as planar as roofs. A cloud with neither returns nor colours falls back on
-    scattering l3 / l1 > 0.05, and its roughness threshold rises to 3 x the cloud's
-    measured height ``noise`` (a noisy roof is as rough as its noise). The decision
-    is then smoothed by a majority vote among the ``vegetation_neighbours`` neighbours.
+    colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A cloud without colours
+    whose rough points are almost never multi-return echoes (fewer than
+    :data:`FEW_RETURNS`: no returns recorded, a dense canopy, a low penetration) also
+    takes the shape of a crown as evidence: scattering l3 / l1 > 0.05 with a roughness
+    above 3 x the cloud's measured height ``noise`` (a noisy roof is as rough as its
+    noise). A coloured cloud without returns (stereo) is judged on colour
+    alone: dense matching smooths tree crowns until they are as planar as roofs. The
+    decision is then smoothed by a majority vote among the ``vegetation_neighbours``
+    neighbours.
 
     Parameters
     ----------
@@ -129,11 +143,22 @@ def classify_vegetation(
     units : Units
     noise : float
         Height noise of the cloud (CRS height units), e.g. the ground filter's estimate.
+    with_roughness : bool
+        Also return each point's roughness.
+
+    Returns
+    -------
+    vegetation : (n,) bool
+    roughness : (n,) float, only with ``with_roughness``
+        RMS of the point's neighbours about their best plane (CRS units), NaN for
+        points not tested (too low, noise).
     """
     n = len(cloud)
     out = np.zeros(n, bool)
+    roughness = np.full(n, np.nan)
+    result = (out, roughness) if with_roughness else out
     if n == 0:
-        return out
+        return result
     xyz = cloud.xyz
     height = xyz[:, 2] - dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
     cand = np.nan_to_num(height, nan=-np.inf) >= units.height(config.vegetation_min_height)
@@ -142,31 +167,36 @@ def classify_vegetation(
         cand &= c != ASPRS.NOISE
     idx = np.flatnonzero(cand)
     if len(idx) < 3:
-        return out
+        return result
     feats = point_features(xyz[idx], k=config.vegetation_neighbours)
+    roughness[idx] = feats["roughness"]
     evidence = np.zeros(len(idx), bool)
     a = cloud.attributes
     have_returns = "number_of_returns" in a and np.any(np.asarray(a["number_of_returns"]) > 1)
+    rough = units.height(config.vegetation_roughness)
+    is_rough = feats["roughness"] > max(rough, 3.0 * noise)
+    few_returns = True
     if have_returns:
-        evidence |= np.asarray(a["number_of_returns"])[idx] > 1
+        multi = np.asarray(a["number_of_returns"])[idx] > 1
+        evidence |= multi
+        few_returns = not np.mean(multi[is_rough]) >= FEW_RETURNS if is_rough.any() else True
     colour = vegetation_index(cloud)
     if colour is not None:
         evidence |= colour[0][idx] > GREEN_THRESHOLDS[colour[1]]
-    if not have_returns and colour is None:
-        evidence |= feats["scattering"] > 0.05
+    if colour is None and few_returns:  # shape alone: a noisy roof is as rough as its noise
+        evidence |= (feats["scattering"] > 0.05) & is_rough
     if colour is not None and not have_returns:
         # photogrammetric surfaces: the matcher smooths tree crowns (roughness 0.04 m,
         # like roofs' 0.035 m on the rendered city) while their colour stays green
         veg = colour[0][idx] > COLOUR_ONLY_THRESHOLDS[colour[1]]
     else:
-        rough = units.height(config.vegetation_roughness)
-        if not have_returns and colour is None:  # shape alone: a noisy roof is as rough as its noise
+        if few_returns and colour is None:
             rough = max(rough, 3.0 * noise)
         veg = (feats["roughness"] > rough) & evidence
     veg = veg[feats["neighbours"]].mean(axis=1) > 0.5
     out[idx] = veg
     log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(idx), config.vegetation_min_height)
-    return out
+    return result
 
 
 def vegetation_cells(
@@ -216,3 +246,37 @@ def vegetation_cells(
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(count > 0, votes / count, 0.0).reshape(grid.shape).astype(np.float32)
     return (votes > 0.5 * count).reshape(grid.shape)
+
+
+def plane_tolerance(config: BuildingsConfig, units: Units, noise: float = 0.0) -> float:
+    """RMS about the local plane (CRS units) up to which a point lies on a plane.
+
+    Twice ``vegetation_roughness`` or 1.5 x the cloud's height ``noise``, whichever is
+    larger: a roof scanned with noise s has an RMS of about 0.85 s about its best local
+    plane, a crown's leaves scatter 0.1 to 0.3 m (more would let crowns of a noisy
+    survey pass as planes).
+    """
+    return max(2.0 * units.height(config.vegetation_roughness), 1.5 * noise)
+
+
+def planar_cells(cloud: PointCloud, grid: Raster, roughness: np.ndarray, tolerance: float) -> np.ndarray:
+    """(rows, cols) float: share of each cell's upper points that lie on a local plane.
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    grid : Raster
+    roughness : (n,) float
+        Per-point roughness (:func:`classify_vegetation` with ``with_roughness``); NaN
+        (points near the ground, not tested) counts as planar.
+    tolerance : float
+        :func:`plane_tolerance`.
+
+    Returns
+    -------
+    (rows, cols) float32
+        In [0, 1] (1 in empty cells), voted like :func:`vegetation_cells`.
+    """
+    rough = np.nan_to_num(np.asarray(roughness, np.float64), nan=0.0) > tolerance
+    share = vegetation_cells(cloud, grid, rough, share=True)
+    return 1.0 - share

@@ -100,6 +100,8 @@ class RunState:
     is_ground: np.ndarray | None = None
     vegetation: np.ndarray | None = None
     vegetation_share: np.ndarray | None = None
+    roughness: np.ndarray | None = None
+    plane_tolerance: float = 0.0
     point_classes: np.ndarray | None = None
     dtm_points: np.ndarray | None = None
     city: CityModel | None = None
@@ -754,8 +756,10 @@ def _lower_unseen_guesses(s: RunState, noise: float) -> None:
 def find_buildings(s: RunState) -> None:
     cfg, u = s.config.buildings, s.units
     noise = s.auto["ground"].get("noise", {}).get("value", 0.0) / u.vertical
-    s.vegetation = vegetation.classify_vegetation(s.cloud, s.dtm, cfg, u, noise=noise)
+    s.vegetation, s.roughness = vegetation.classify_vegetation(s.cloud, s.dtm, cfg, u, noise=noise, with_roughness=True)
     share = vegetation.vegetation_cells(s.cloud, s.dsm, s.vegetation, share=True)
+    s.plane_tolerance = vegetation.plane_tolerance(cfg, u, noise)
+    planar = vegetation.planar_cells(s.cloud, s.dsm, s.roughness, s.plane_tolerance)
     s.vegetation_share = share
     if s.footprints is not None:
         evidence = detect.building_evidence(s.ndsm, share, cfg, u)
@@ -778,7 +782,10 @@ def find_buildings(s: RunState) -> None:
         ndsm = s.ndsm
         if s.satellite_paths is not None and s.dsm_unobserved is not None:  # only where matched
             ndsm = Raster(np.where(s.dsm_unobserved, np.nan, s.ndsm.data), s.ndsm.transform, s.ndsm.crs, s.ndsm.tags)
-        polygons = detect.detect_buildings(ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation)
+        polygons = detect.detect_buildings(
+            ndsm, share, cfg, u, cloud=s.cloud, dtm=s.dtm, point_vegetation=s.vegetation, planar=planar,
+            point_density=_point_density(s),
+        )
         if s.satellite_paths is not None and s.dsm_unobserved is not None:
             polygons = _on_observed_ground(s, polygons)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
@@ -895,6 +902,37 @@ def _build_lods(job: tuple) -> lod.LodResult:
     return lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
 
 
+def _point_density(s: RunState) -> float:
+    """First returns per square metre over the DSM cells that hold data."""
+    a = s.cloud.attributes
+    first = np.count_nonzero(np.asarray(a["return_number"]) <= 1) if "return_number" in a else len(s.cloud)
+    area = np.count_nonzero(np.isfinite(s.dsm.data)) * s.units.area(1.0) ** -1 * s.dsm.resolution**2
+    return float(first / area) if area > 0 else 0.0
+
+
+def _roof_surface(s: RunState) -> np.ndarray | None:
+    """(n,) height of the LoD2.2 roofs above each point of the cloud, NaN off them
+    (and off buildings that fell back on LoD1: their prisms are no roof surface)."""
+    from recon3d.core.city import CityModel
+    from recon3d.quality.rasterize import surface_at
+
+    with_roofs = [b for b in s.city if "2.2" in b.solids]
+    if not with_roofs or s.roughness is None:
+        return None
+    xyz = s.cloud.xyz
+    inside = np.zeros(len(xyz), bool)
+    row, col = s.dsm.rowcol(xyz[:, 0], xyz[:, 1])
+    rows, cols = s.dsm.shape
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    inside[ok] = s.labels[row[ok], col[ok]] > 0
+    out = np.full(len(xyz), np.nan)
+    if inside.any():
+        model = CityModel(with_roofs, s.city.crs, s.city.frame)
+        nowhere = s.dtm.like(np.full(s.dtm.shape, np.nan, np.float32))
+        out[inside] = surface_at(model, xyz[inside, 0], xyz[inside, 1], nowhere, lod="2.2")
+    return out
+
+
 def rasterize_model(s: RunState) -> None:
     s.model_dsm, s.roof_cover = render(s.city, s.dtm)
 
@@ -953,7 +991,9 @@ def evaluate_products(s: RunState) -> None:
     tables = []
     with_solid = np.array([False] + [bool(b.solids) for b in s.city])
     s.point_classes = classes.point_classes(
-        s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid
+        s.cloud, s.is_ground, s.labels, s.dsm, s.dtm, s.config.buildings, u, vegetation=s.vegetation, with_solid=with_solid,
+        roof_surface=_roof_surface(s), roughness=s.roughness, tolerance=max(u.height(0.25), 2.0 * s.plane_tolerance),
+        plane_tolerance=s.plane_tolerance,
     )
     if s.auto.get("dsm.hidden_ground", {}).get("value"):
         # the guesses over hidden ground stay in the cloud, above the DSM that replaced them

@@ -3,7 +3,9 @@
 A :class:`SyntheticCity` is terrain (gentle relief, flat, a 10 % slope or hills), a grid
 of streets and lots (regular, dense or sparse), one building per lot (flat, shed, gable,
 hip and pyramid roofs on rectangles; flat L and T plans; one courtyard building) and
-trees (ellipsoid or cone crowns on trunks) beside the buildings or over their roofs.
+trees (ellipsoid or cone crowns on trunks) beside the buildings or over their roofs,
+and optionally groves: clusters of touching crowns covering 75 m2 or more, which a
+detector must not take for a building.
 Everything is a triangle mesh in a local metric frame (z up, float32-safe
 coordinates); ``city.origin`` is added to get world coordinates in ``city.crs``
 (UTM-sized by default, so consumers are tested against the float32 pitfall).
@@ -577,6 +579,52 @@ def _overhanging_trees(
     return out
 
 
+def _groves(
+    rng: np.random.Generator,
+    size: float,
+    terrain: Terrain,
+    footprints: list[shapely.Polygon],
+    trees: list[TreeTruth],
+    oz: float,
+) -> list[TreeTruth]:
+    """One to three groves: 5 to 10 trees whose crowns touch, on free ground.
+
+    Each grove's crowns (2.5 to 4 m radius, 7 to 14 m high, their centres 1.3 crown
+    radii apart in a sunflower pattern) make one closed canopy of about 75 to 300 m2,
+    clear of the buildings by 1 m and of the trees already planted.
+    """
+    blocked = shapely.union_all(footprints) if footprints else shapely.Polygon()
+    shapely.prepare(blocked)
+    placed = np.array([[t.x, t.y, t.crown_radius] for t in trees]).reshape(-1, 3)
+    out: list[TreeTruth] = []
+    for _ in range(int(rng.integers(1, 4))):
+        n = int(rng.integers(5, 11))
+        r = rng.uniform(2.5, 4.0, n)
+        k = np.arange(n)
+        spread = 0.8 * r.mean() * np.sqrt(k)  # a sunflower spiral: neighbours 1.3 radii apart
+        angle = k * np.pi * (3.0 - np.sqrt(5.0))
+        offsets = np.column_stack([spread * np.cos(angle), spread * np.sin(angle)])
+        for _ in range(40):
+            centre = rng.uniform(6.0, size - 6.0, size=2)
+            xy = centre + offsets
+            if np.any(xy < 2.0) or np.any(xy > size - 2.0):
+                continue
+            crowns = shapely.union_all([shapely.Point(p).buffer(ri + 1.0) for p, ri in zip(xy, r, strict=True)])
+            if crowns.intersects(blocked):
+                continue
+            gap = np.hypot(placed[:, None, 0] - xy[None, :, 0], placed[:, None, 1] - xy[None, :, 1])
+            if np.any(gap < placed[:, None, 2] + r[None, :]):
+                continue
+            g = terrain.height(xy[:, 0], xy[:, 1])
+            heights = rng.uniform(7.0, 14.0, n)
+            for (x, y), ri, gi, hi in zip(xy, r, g, heights, strict=True):
+                tid = f"t{len(trees) + len(out) + 1}"
+                out.append(TreeTruth(tid, float(x), float(y), float(gi) + oz, float(gi + hi) + oz, float(ri), "ellipsoid"))
+            placed = np.vstack([placed, np.column_stack([xy, r])])
+            break
+    return out
+
+
 # --------------------------------------------------------------------------- the city
 
 
@@ -669,6 +717,7 @@ def make_city(
     terrain: str = "gentle",
     layout: str = "regular",
     trees: str = "beside",
+    groves: bool = False,
 ) -> SyntheticCity:
     """Build a procedural city, deterministic for a given seed.
 
@@ -695,6 +744,9 @@ def make_city(
     trees : {"none", "beside", "over"}
         No trees; trees on open ground clear of the buildings; or those plus trees
         beside a third of the buildings whose crowns reach over the roof.
+    groves : bool
+        Also one to three groves of 5 to 10 touching crowns (75 to 300 m2 of closed
+        canopy) on open ground; ignored with ``trees="none"``.
 
     Returns
     -------
@@ -733,11 +785,15 @@ def make_city(
         planted = _make_trees(_rng(seed, 3), size, ground, footprints, frame.origin[2])
     if trees == "over":
         planted += _overhanging_trees(_rng(seed, 5), buildings, ground, planted, frame)
+    if groves and trees != "none":
+        planted += _groves(_rng(seed, 6), size, ground, footprints, planted, frame.origin[2])
     city = _assemble(seed, size, crs, frame, ground, streets, buildings, planted)
     city.params = {
         "seed": int(seed), "size": float(size), "n_buildings": n_buildings, "margin": margin,
         "origin": list(frame.origin), "crs": crs, "terrain": terrain, "layout": layout, "trees": trees,
     }
+    if groves and trees != "none":
+        city.params["groves"] = True
     log.info(
         "synthetic city seed %d: %.0f m, %s terrain, %s layout, %d buildings, %d trees, %d triangles",
         seed, size, terrain, layout, len(buildings), len(planted), len(city.faces),

@@ -159,7 +159,8 @@ def random_survey(seed: int) -> dict:
     Returns
     -------
     dict
-        ``make_city`` arguments (``city``), scan arguments (``scan``: density 1-25
+        ``make_city`` arguments (``city``; with trees, two surveys in five also get
+        groves of touching crowns), scan arguments (``scan``: density 1-25
         points per m2, noise 1-8 cm, crown penetration 0-0.6, off-nadir angle 0-20
         degrees) and the file (``file``: LAS or LAZ, with or without classes and CRS,
         terrain height offset 0-2500 m).
@@ -169,7 +170,7 @@ def random_survey(seed: int) -> dict:
     rng = np.random.default_rng([seed, 17])
     crs = str(rng.choice(sorted(SURVEY_CRSS)))
     x, y = SURVEY_CRSS[crs]
-    return {
+    spec = {
         "seed": seed,
         "city": {
             "seed": int(rng.integers(0, 2**31)),
@@ -192,6 +193,10 @@ def random_survey(seed: int) -> dict:
             "with_crs": bool(rng.uniform() < 0.8),
         },
     }
+    # drawn last, so the surveys of the earlier family keep every other value
+    if rng.uniform() < 0.4 and spec["city"]["trees"] != "none":
+        spec["city"]["groves"] = True
+    return spec
 
 
 def write_survey(folder: str | Path, spec: dict) -> tuple[Path, SyntheticCity]:
