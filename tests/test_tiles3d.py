@@ -226,7 +226,13 @@ def test_3dtiles_without_crs_or_solids(tmp_path):
 
 
 def test_3dtiles_official_schema_when_provided(grid):
-    """Against the 3D Tiles 1.1 JSON schema files, where ../shared/data provides them."""
+    """Against the 3D Tiles 1.1 JSON schema files, where ../shared/data provides them.
+
+    No npm package ships them or the official validator (2026-12: ``3d-tiles-validator``
+    and ``@cesium/3d-tiles-validator`` are not in the registry; ``3d-tiles-tools`` 0.5.4
+    has no validate command and no schema files); they live in the CesiumGS/3d-tiles
+    repository, ``specification/schema/``.
+    """
     import jsonschema
     from referencing import Registry, Resource
 
