@@ -26,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import _bench
 import numpy as np
 
 GROUPS = ("none", "beside", "over", "groves")
@@ -125,7 +126,7 @@ def main() -> None:
     parser.add_argument("--cases", type=int, default=40)
     parser.add_argument("--seeds", type=int, nargs="+", help="these seeds instead of --start/--cases")
     parser.add_argument("--real", action="store_true", help="also the shared real tiles")
-    parser.add_argument("--quick", action="store_true", help="two seeds only (the suite runs this)")
+    _bench.add_quick(parser)  # two seeds only
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args()
     logging.disable(logging.WARNING)
