@@ -6,6 +6,7 @@ and 43, 54, 60, 74, 75, 78, 105, 109, 118 once the rules existed; the surveys he
 """
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,10 @@ from recon3d.core.raster import Raster
 from recon3d.synthetic.city import make_city
 from recon3d.synthetic.lidar import random_survey
 
-_SPEC = importlib.util.spec_from_file_location("bench_trees", Path(__file__).resolve().parents[1] / "scripts" / "bench_trees.py")
+_SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+if str(_SCRIPTS) not in sys.path:  # the benchmark imports its helpers (_bench) as a script would
+    sys.path.insert(0, str(_SCRIPTS))
+_SPEC = importlib.util.spec_from_file_location("bench_trees", _SCRIPTS / "bench_trees.py")
 bench = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(bench)
 
