@@ -652,7 +652,8 @@ def _label_point(ring: np.ndarray) -> tuple[float, float]:
 
 def _building_table(rows: list[dict]) -> str:
     head = ["id", "CityJSON", "LoD", "roof type", "roof planes", "ground z (m)", "roof z (m)", "height (m)",
-            "area (m²)", "roof RMS (m)", "status", "fallback reason"]
+            "area (m²)", "roof RMS (m)", "status", "fallback reason", "roof points / m²", "points > 1 m off (%)",
+            "cells without points (%)"]
     body = []
     for b in rows:
         bid = str(b.get("id"))
@@ -668,12 +669,25 @@ def _building_table(rows: list[dict]) -> str:
             _td(fmt_m(b.get("roof_rms_m")), b.get("roof_rms_m")),
             _td(html.escape(status), status, {"ok": "l", "fallback": "l fallback"}.get(status, "l bad")),
             _td(html.escape(str(b.get("reason") or "")) or "–", b.get("reason") or None, "l"),
+            _td(_fmt_density(b.get("roof_points_per_m2")), b.get("roof_points_per_m2")),
+            _td(_share_pct(b.get("roof_points_off_1m_share")), b.get("roof_points_off_1m_share")),
+            _td(_share_pct(b.get("footprint_empty_share")), b.get("footprint_empty_share")),
         ]
         body.append(f'<tr id="row-{html.escape(bid)}" data-b="{html.escape(bid)}">{"".join(cells)}</tr>')
     return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11})
             + "<p class=small>Click a column to sort. Heights: ground z and roof z in the CRS's vertical reference; "
             "height is the roof top above ground. Roof RMS: the model DSM against the measured DSM on the building's "
-            "cells.</p>")
+            "cells. Points more than 1 m off: the building's roof points that far from its best solid (step walls "
+            "included); cells without points: its footprint cells filled from their rim.</p>")
+
+
+def _fmt_density(v) -> str:
+    return f"{v:.1f}" if _finite(v) else NA
+
+
+def _share_pct(v) -> str:
+    """A share in [0, 1] as a percentage to 0.1."""
+    return fmt_pct(100.0 * v) if _finite(v) else NA
 
 
 # --------------------------------------------------------------------------- changes, timings, parameters
