@@ -463,13 +463,13 @@ def test_evaluate_against_classes_synthetic():
     assert half["completeness"] == pytest.approx(50, abs=2) and half["correctness"] > 98
 
 
-def test_per_building_fit_quality(delft_run):
+def test_per_buildingfit_quality(delft_run):
     """Per-building quality attributes (issue 19 item 6): on Delft every built building
     carries them; lifting a known share of one roof's points 3 m above the model shows up
     as that share of points more than 1 m off, and the density is the points per m2."""
     import shapely
 
-    from recon3d.pipeline.run import _fit_quality
+    from recon3d.quality.roofs import fit_quality
 
     s = delft_run
     built = [b for b in s.city if b.solids]
@@ -481,10 +481,10 @@ def test_per_building_fit_quality(delft_run):
     pts = s.cloud.xyz[~s.is_ground & ~s.vegetation]
     pts = pts[shapely.contains_xy(b.footprint, pts[:, 0], pts[:, 1])]
     pts = pts[pts[:, 2] > b.ground_z + min(1.0, 0.5 * (b.roof_z - b.ground_z))]
-    clean = _fit_quality(b, pts, s.city.frame, s.units, 0.0)
+    clean = fit_quality(b, pts, s.city.frame, s.units, 0.0)
     assert clean["roof_points_per_m2"] == pytest.approx(len(pts) / b.footprint.area, rel=1e-3)
     lifted = pts.copy()
     picked = np.random.default_rng(0).random(len(pts)) < 0.3
     lifted[picked, 2] += 3.0
-    off = _fit_quality(b, lifted, s.city.frame, s.units, 0.0)["roof_points_off_1m_share"]
+    off = fit_quality(b, lifted, s.city.frame, s.units, 0.0)["roof_points_off_1m_share"]
     assert off - clean["roof_points_off_1m_share"] == pytest.approx(picked.mean(), abs=0.05)

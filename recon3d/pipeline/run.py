@@ -880,6 +880,8 @@ def build_solids(s: RunState) -> None:
         workers, why = default_workers(), "the CPUs this process may use (affinity, container quota)"
     s.auto["workers"] = {"value": min(workers, max(len(jobs), 1)), "reason": why}
     done = None if s.progress is None else lambda k: s.progress(f"{k}/{len(jobs)} buildings")
+    from recon3d.quality.roofs import fit_quality
+
     results = map_ordered(_build_lods, jobs, workers, done=done)
     empty = dict(zip((b.id for b in s.city), _empty_share(s)[1:], strict=False))
     for b, res, job in zip(built, results, jobs, strict=True):
@@ -888,7 +890,7 @@ def build_solids(s: RunState) -> None:
         b.attributes.update(roof_type=res.roof_type, roof_planes=len(res.planes))
         if np.isfinite(res.roof_rms):
             b.attributes["roof_point_rms_m"] = round(float(res.roof_rms) * u.vertical, 3)
-        b.attributes.update(_fit_quality(b, job[1], s.city.frame, u, empty.get(b.id, 0.0)))
+        b.attributes.update(fit_quality(b, job[1], s.city.frame, u, empty.get(b.id, 0.0)))
     failed = [b.id for b in s.city if not b.solids]
     if failed:
         s.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
@@ -901,33 +903,6 @@ def _empty_share(s: RunState) -> np.ndarray:
     cells = np.bincount(labels, minlength=n)
     empty = np.bincount(labels[s.dsm_filled.ravel()], minlength=n) if s.dsm_filled is not None else np.zeros(n)
     return empty / np.maximum(cells, 1)
-
-
-def _fit_quality(b: Building, points: np.ndarray, frame, u, empty: float) -> dict:
-    """How well a building's best solid explains its points, as roofer reports it:
-    the share of its footprint's cells without a point (``empty``), its roof point
-    density, and the share of its roof points more than 1 m from the roof.
-
-    ``points`` are the non-ground, non-vegetation points of the footprint's bounding
-    box, (n, 3) world coordinates; those inside the footprint and above its lower part
-    (as :func:`~recon3d.buildings.lod.build_lods` takes them) are its roof points."""
-    import shapely
-
-    from recon3d.quality.roofs import roof_residuals_summary
-
-    out = {"footprint_empty_share": round(float(empty), 3)}
-    if b.footprint is not None and len(points):
-        inside = points[shapely.contains_xy(b.footprint, points[:, 0], points[:, 1])]
-        if np.isfinite(b.ground_z) and np.isfinite(b.roof_z):  # roof points as build_lods takes them
-            inside = inside[inside[:, 2] > b.ground_z + min(u.height(1.0), 0.5 * (b.roof_z - b.ground_z))]
-        area = b.footprint.area
-        out["roof_points_per_m2"] = round(len(inside) / (area * u.horizontal**2) if area > 0 else 0.0, 2)
-        if b.solids and len(inside):
-            best = b.solids[max(b.solids, key=float)]
-            summary = roof_residuals_summary(best, frame.to_local(inside), outlier=u.height(1.0))
-            if summary.get("n"):
-                out["roof_points_off_1m_share"] = round(float(summary["outlier_share"]), 3)
-    return out
 
 
 #: Buildings from which ``build_solids`` uses every CPU by default (a building takes
@@ -1001,7 +976,7 @@ def make_orthophotos(s: RunState) -> None:
     regions = ortho.doubtful_regions(s.ortho_diff, cfg.doubtful_threshold, u.area(cfg.doubtful_area), s.labels, ids)
     judged = np.isfinite(s.ortho_diff.data)
     doubtful = judged & ortho.doubtful_cells(s.ortho_diff, cfg.doubtful_threshold)
-    cell = s.dsm.resolution / round(s.dsm.resolution / s.ortho.transform.a)
+    cell = s.ortho.transform.a
     s.auto["ortho"] = {"surface": cfg.surface, "cell": round(cell, 4),
                        "reason": f"the images' ground sample distance ({gsd:.3f}), a whole fraction of the DSM cell"}
     area = sum(r["area"] for r in regions)

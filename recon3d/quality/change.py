@@ -879,9 +879,11 @@ def _new_in_blocks(groups, ctx: dict[str, Any]) -> list[dict[str, Any]]:
     within = shapely.difference(shapely.union_all(matched), shapely.union_all(ctx["old_polys"]))
     tree = shapely.STRtree(ctx["old_polys"])
     out = []
+    pieces: dict[int, list] = {}
+    for g, k in rasterio.features.shapes(labels.astype(np.int32), mask=labels > 0, transform=ndsm.transform):
+        pieces.setdefault(int(k), []).append(shapely.geometry.shape(g))
     for k in range(1, n + 1):
-        region = shapely.union_all([shapely.geometry.shape(g) for g, _ in rasterio.features.shapes(
-            (labels == k).astype(np.uint8), mask=labels == k, transform=ndsm.transform)])
+        region = shapely.union_all(pieces[k])
         region = shapely.intersection(region.buffer(shift + ndsm.resolution, join_style="mitre"), within)
         region = max(shapely.get_parts(region), key=lambda g: g.area, default=region)
         if region.area < u.area(p.block_new_area):

@@ -39,12 +39,14 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from recon3d.core.city import Solid
+from recon3d.core.city import Building, Solid
+from recon3d.core.geo import LocalFrame, Units
 
 __all__ = [
     "RoofPlaneView",
     "compare_roof_planes",
     "compare_roofs",
+    "fit_quality",
     "point_to_roof",
     "roof_height_at",
     "roof_planes",
@@ -345,4 +347,27 @@ def compare_roofs(
         out["volume_reference"] = vr
         out["volume_model"] = vm
         out["volume_error"] = (vm - vr) / vr if vr > 0 else float("nan")
+    return out
+
+
+def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, empty: float) -> dict:
+    """How well a building's best solid explains its points, as roofer reports it:
+    the share of its footprint's cells without a point (``empty``), its roof point
+    density, and the share of its roof points more than 1 m from the roof.
+
+    ``points`` are the non-ground, non-vegetation points of the footprint's bounding
+    box, (n, 3) world coordinates; those inside the footprint and above its lower part
+    (as :func:`~recon3d.buildings.lod.build_lods` takes them) are its roof points."""
+    out = {"footprint_empty_share": round(float(empty), 3)}
+    if b.footprint is not None and len(points):
+        inside = points[shapely.contains_xy(b.footprint, points[:, 0], points[:, 1])]
+        if np.isfinite(b.ground_z) and np.isfinite(b.roof_z):  # roof points as build_lods takes them
+            inside = inside[inside[:, 2] > b.ground_z + min(u.height(1.0), 0.5 * (b.roof_z - b.ground_z))]
+        area = b.footprint.area
+        out["roof_points_per_m2"] = round(len(inside) / (area * u.horizontal**2) if area > 0 else 0.0, 2)
+        if b.solids and len(inside):
+            best = b.solids[max(b.solids, key=float)]
+            summary = roof_residuals_summary(best, frame.to_local(inside), outlier=u.height(1.0))
+            if summary.get("n"):
+                out["roof_points_off_1m_share"] = round(float(summary["outlier_share"]), 3)
     return out

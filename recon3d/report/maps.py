@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from recon3d.terrain.dtm import fill_nearest
+
 __all__ = ["COLORMAPS", "DEFS", "MapFrame", "colorize", "colour_bar", "figure_html", "hillshade", "nice_step", "png_uri",
            "shaded_relief"]
 
@@ -67,20 +69,13 @@ def hillshade(z: np.ndarray, cell: float, *, azimuth: float = 315.0, altitude: f
     valid = np.isfinite(z)
     filled = np.where(valid, z, np.nanmedian(z) if valid.any() else 0.0)
     if valid.any() and not valid.all():  # no cliff at the edge of the data
-        filled = _fill_nearest(z, valid)
+        filled = fill_nearest(z)
     gy, gx = np.gradient(filled, cell)
     slope = np.arctan(np.hypot(gx, gy))
     aspect = np.arctan2(-gx, gy)
     az, alt = np.radians(360.0 - azimuth + 90.0), np.radians(altitude)
     shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
     return np.where(valid, np.clip(shade, 0.0, 1.0), np.nan).astype(np.float32)
-
-
-def _fill_nearest(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    from scipy import ndimage
-
-    index = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
-    return z[tuple(index)]
 
 
 def colorize(values: np.ndarray, lo: float, hi: float, cmap: str) -> np.ndarray:
@@ -102,7 +97,7 @@ def shaded_relief(z: np.ndarray, cell: float, lo: float, hi: float, cmap: str | 
     valid = np.isfinite(z)
     if factor != 1.0:
         size = (max(round(z.shape[1] * factor), 1), max(round(z.shape[0] * factor), 1))
-        filled = _fill_nearest(z, valid) if valid.any() and not valid.all() else np.nan_to_num(z)
+        filled = fill_nearest(z) if valid.any() and not valid.all() else np.nan_to_num(z)
         method = cv2.INTER_LINEAR if factor > 1 else cv2.INTER_AREA
         z_new = cv2.resize(filled.astype(np.float32), size, interpolation=method)
         valid = cv2.resize(valid.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)

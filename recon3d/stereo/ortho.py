@@ -397,16 +397,18 @@ def doubtful_regions(diff: Raster, threshold: float, min_area: float, labels: np
         return []
     cells = np.bincount(regions.ravel(), minlength=n + 1)
     keep = np.flatnonzero(cells[1:] * diff.resolution**2 >= min_area) + 1
-    rr, cc = np.indices(regions.shape)
+    boxes = ndimage.find_objects(regions)
     out = []
     for r in keep:
-        inside = regions == r
-        values = diff.data[inside]
+        box = boxes[r - 1]
+        inside = regions[box] == r
+        values = diff.data[box][inside]
         if not np.isfinite(values).any():  # only cells the median filter reached, none judged
             continue
-        row, col = rr[inside].mean(), cc[inside].mean()
-        x, y = diff.transform @ (col + 0.5, row + 0.5)
-        touched = sorted({ids[v - 1] for v in np.unique(labels[inside]) if v > 0}) if labels is not None and ids else []
+        rows, cols = np.nonzero(inside)
+        x, y = diff.transform @ (box[1].start + cols.mean() + 0.5, box[0].start + rows.mean() + 0.5)
+        touched = (sorted({ids[v - 1] for v in np.unique(labels[box][inside]) if v > 0})
+                   if labels is not None and ids else [])
         out.append({"area": round(float(cells[r] * diff.resolution**2), 1), "centre": [round(x, 2), round(y, 2)],
                     "mean": round(float(np.nanmean(values)), 3), "buildings": touched})
     return sorted(out, key=lambda d: -d["area"])

@@ -146,7 +146,7 @@ def ground_layer(out_dir: Path, origin: np.ndarray) -> dict | None:
 
 def _ground_shade(dsm) -> np.ndarray:
     """(rows, cols, 3) uint8: the DSM's hillshade, softened so the buildings stand out, empty cells blue-grey."""
-    from recon3d.report.html import hillshade
+    from recon3d.report.maps import hillshade
 
     shade = SHADE_FLOOR + hillshade(dsm.data.astype(float), dsm.resolution) * (1 - SHADE_FLOOR / 255)
     image = np.repeat(shade.astype(np.uint8)[..., None], 3, axis=2)
