@@ -486,5 +486,13 @@ def test_per_buildingfit_quality(delft_run):
     lifted = pts.copy()
     picked = np.random.default_rng(0).random(len(pts)) < 0.3
     lifted[picked, 2] += 3.0
-    off = fit_quality(b, lifted, s.city.frame, s.units, 0.0)["roof_points_off_1m_share"]
-    assert off - clean["roof_points_off_1m_share"] == pytest.approx(picked.mean(), abs=0.05)
+    off = fit_quality(b, lifted, s.city.frame, s.units, 0.0)
+    assert off["roof_points_off_1m_share"] - clean["roof_points_off_1m_share"] == pytest.approx(picked.mean(), abs=0.05)
+    # the RMS to each LoD: LoD2.2 follows the roof far better than the flat LoD1, and
+    # 30 % of the points 3 m up add about 0.3 * 3^2 to its mean square
+    lods = [lod.replace(".", "") for lod in b.solids]
+    assert all(f"roof_point_rms_lod{k}_m" in b.attributes for k in lods)
+    assert clean["roof_point_rms_lod22_m"] < 0.5 * clean["roof_point_rms_lod1_m"]
+    grown = off["roof_point_rms_lod22_m"] ** 2 - clean["roof_point_rms_lod22_m"] ** 2
+    assert grown == pytest.approx(9.0 * picked.mean(), rel=0.15)
+    assert all(b.attributes[f"validity_lod{k}"] == "valid" for b in built for k in (x.replace(".", "") for x in b.solids))

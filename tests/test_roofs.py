@@ -606,3 +606,40 @@ def test_real_lidar_buildings(fixture, request):
     assert n22 >= 5
     if fixture == "delft_run":  # a spike left by vertex insertion once cost one of them
         assert sum("2.2" in b.solids for b in state.city) >= 9
+
+
+def test_validity_per_lod_names_the_failed_check(monkeypatch):
+    """Each LoD tried carries its check's result (issue 19 item 6): "valid" for the
+    solids built, and val3dity's codes for a LoD the check threw out. A gable whose
+    pitched LoD2.2 the check is made to refuse (203, non-planar) falls back to LoD1.3,
+    and its validity says why."""
+    from recon3d.quality.meshcheck import MeshIssue
+    from recon3d.quality.roofs import validity_attributes
+
+    fun, fp = ROOFS["gable"]
+    pts, fpw, frame = _synthetic(fun, fp)
+    clean = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    assert clean.validity == {"1": (), "1.3": (), "2.2": ()}
+    assert validity_attributes(clean.validity) == {"validity_lod1": "valid", "validity_lod13": "valid", "validity_lod22": "valid"}
+
+    real = lod._issues
+
+    def refuse_pitched(solid, u):
+        pitched = any(kind == "RoofSurface" and abs(_normal_z(solid, i)) < 0.99
+                      for i, kind in enumerate(solid.semantics))
+        return [MeshIssue(203, "NON_PLANAR_POLYGON_DISTANCE_PLANE", "planted", 0)] if pitched else real(solid, u)
+
+    monkeypatch.setattr(lod, "_issues", refuse_pitched)
+    result = lod.build_lods(fpw, pts, 0.0, 9.0, frame, ALL_LODS)
+    assert result.status == "fallback" and result.reason == "invalid_mesh"
+    assert set(result.solids) == {"1", "1.3"}
+    assert result.validity == {"1": (), "1.3": (), "2.2": (203,)}
+    assert validity_attributes(result.validity)["validity_lod22"] == "203 NON_PLANAR_POLYGON_DISTANCE_PLANE"
+
+
+def _normal_z(solid: Solid, i: int) -> float:
+    from recon3d.core.mesh import newell_normal
+
+    ring = np.asarray(solid.vertices)[solid.surfaces[i][0]]
+    n = newell_normal(ring)
+    return float(n[2] / (np.linalg.norm(n) or 1.0))

@@ -137,6 +137,9 @@ class LodResult(NamedTuple):
         height units; NaN without a solid.
     planes : list of RoofPlane
         The roof planes, local frame (empty when none were searched or found).
+    validity : dict of str to tuple of int
+        By LoD attempted: the val3dity error codes of its solid's check, ``()`` when
+        it passed (every LoD in ``solids``); codes only when the check failed it.
     """
 
     solids: dict
@@ -145,6 +148,7 @@ class LodResult(NamedTuple):
     reason: str | None
     roof_rms: float
     planes: list
+    validity: dict = {}
 
 
 def build_lods(
@@ -216,9 +220,11 @@ def build_lods(
 
     solids: dict[str, Solid] = {}
     reasons: dict[str, str] = {}
+    codes: dict[str, tuple[int, ...]] = {}
     lod1 = lod1_solid(footprint, g + oz, r + oz, frame)
-    if _issues(lod1, u):
-        return failed._replace(reason="invalid_mesh")
+    issues = _issues(lod1, u)
+    if issues:
+        return failed._replace(reason="invalid_mesh", validity={"1": _codes(issues)})
     want22 = "2.2" in lods
     params = RoofParams.from_config(cfg, u)
     seg, grid = None, None
@@ -232,11 +238,11 @@ def build_lods(
             reasons["1.3"] = reasons["2.2"] = why
     rms22 = float("nan")
     if want22 and "2.2" not in reasons:
-        built = _attempt("2.2", lambda: _lod22(grid, fp, seg, roof_pts, g, u, cfg), reasons)
+        built = _attempt("2.2", lambda: _lod22(grid, fp, seg, roof_pts, g, u, cfg), reasons, codes)
         if built is not None:
             solids["2.2"], rms22 = built
     if ("1.3" in lods or "2.2" in reasons) and "1.3" not in reasons and grid is not None:
-        built = _attempt("1.3", lambda: _lod13_of(grid, fp, seg, roof_pts, g, u, cfg), reasons)
+        built = _attempt("1.3", lambda: _lod13_of(grid, fp, seg, roof_pts, g, u, cfg), reasons, codes)
         if built is not None:
             solids["1.3"] = built
     solids["1"] = lod1
@@ -254,16 +260,21 @@ def build_lods(
     kind = roof_type(seg) if seg is not None else "unknown"
     planes = seg.planes if seg is not None else []
     ordered = dict(sorted(solids.items(), key=lambda kv: float(kv[0])))
-    return LodResult(ordered, kind, status, None if status == "ok" else reasons.get(top), rms, planes)
+    validity = {lod: () for lod in ordered} | codes
+    validity = dict(sorted(validity.items(), key=lambda kv: float(kv[0])))
+    return LodResult(ordered, kind, status, None if status == "ok" else reasons.get(top), rms, planes, validity)
 
 
-def _attempt(lod: str, build, reasons: dict[str, str]):
-    """``build()``, or None with the reason recorded in ``reasons[lod]``; a bug is
-    logged and costs only this LoD, never the building its LoD1."""
+def _attempt(lod: str, build, reasons: dict[str, str], codes: dict[str, tuple[int, ...]]):
+    """``build()``, or None with the reason recorded in ``reasons[lod]`` (and the
+    failed check's codes in ``codes[lod]``); a bug is logged and costs only this LoD,
+    never the building its LoD1."""
     try:
         return build()
     except LodFailure as exc:
         reasons[lod] = exc.reason
+        if exc.codes:
+            codes[lod] = exc.codes
         log.debug("LoD%s not built: %s", lod, exc)
     except Exception:
         reasons[lod] = "internal_error"
@@ -396,6 +407,11 @@ def _issues(solid: Solid, u) -> list:
     return check_solid(solid, planarity_tol=u.length(0.01), snap=u.length(0.001))
 
 
+def _codes(issues: list) -> tuple[int, ...]:
+    """The distinct val3dity codes of a check's issues, ascending."""
+    return tuple(sorted({int(i.code) for i in issues}))
+
+
 def _roofed(grid: RoofGrid, fp, planes: list[np.ndarray], g: float, u, *, intersect: bool, coarse: bool = False):
     """The validated solid of the raster regions (LoD2.2: re-cut along plane intersections)
     and the regions, (polygon, plane index) pairs, it was built from. ``coarse`` also
@@ -413,7 +429,7 @@ def _roofed(grid: RoofGrid, fp, planes: list[np.ndarray], g: float, u, *, inters
     solid = partition_solid(regions, planes, g, u)
     issues = _issues(solid, u)
     if issues:
-        raise LodFailure("invalid_mesh", "; ".join(f"{i.code} {i.detail}" for i in issues[:3]))
+        raise LodFailure("invalid_mesh", "; ".join(f"{i.code} {i.detail}" for i in issues[:3]), _codes(issues))
     return solid, regions
 
 

@@ -20,9 +20,13 @@ __all__ = ["LodFailure", "RoofGrid", "height_levels", "label_grid", "plane_heigh
 
 
 class LodFailure(Exception):
-    def __init__(self, reason: str, detail: str = "") -> None:
+    """A LoD that cannot be built: ``reason`` is one of ``lod.LOD_REASONS``; ``codes``
+    are the val3dity error codes of the solid that failed the check (``invalid_mesh``)."""
+
+    def __init__(self, reason: str, detail: str = "", codes: tuple[int, ...] = ()) -> None:
         super().__init__(f"{reason}: {detail}" if detail else reason)
         self.reason = reason
+        self.codes = codes
 
 
 class RoofGrid(NamedTuple):

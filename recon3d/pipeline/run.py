@@ -880,7 +880,7 @@ def build_solids(s: RunState) -> None:
         workers, why = default_workers(), "the CPUs this process may use (affinity, container quota)"
     s.auto["workers"] = {"value": min(workers, max(len(jobs), 1)), "reason": why}
     done = None if s.progress is None else lambda k: s.progress(f"{k}/{len(jobs)} buildings")
-    from recon3d.quality.roofs import fit_quality
+    from recon3d.quality.roofs import fit_quality, validity_attributes
 
     results = map_ordered(_build_lods, jobs, workers, done=done)
     empty = dict(zip((b.id for b in s.city), _empty_share(s)[1:], strict=False))
@@ -891,6 +891,7 @@ def build_solids(s: RunState) -> None:
         if np.isfinite(res.roof_rms):
             b.attributes["roof_point_rms_m"] = round(float(res.roof_rms) * u.vertical, 3)
         b.attributes.update(fit_quality(b, job[1], s.city.frame, u, empty.get(b.id, 0.0)))
+        b.attributes.update(validity_attributes(res.validity))
     failed = [b.id for b in s.city if not b.solids]
     if failed:
         s.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))

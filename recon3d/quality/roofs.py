@@ -351,9 +351,10 @@ def compare_roofs(
 
 
 def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, empty: float) -> dict:
-    """How well a building's best solid explains its points, as roofer reports it:
-    the share of its footprint's cells without a point (``empty``), its roof point
-    density, and the share of its roof points more than 1 m from the roof.
+    """How well a building's solids explain its points, as roofer reports it: the
+    share of its footprint's cells without a point (``empty``), its roof point density,
+    the RMS of its roof points to each LoD's roof (``roof_point_rms_lod22_m`` ..., all
+    points, vertical distances) and the share of them more than 1 m from the best one.
 
     ``points`` are the non-ground, non-vegetation points of the footprint's bounding
     box, (n, 3) world coordinates; those inside the footprint and above its lower part
@@ -366,8 +367,23 @@ def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, em
         area = b.footprint.area
         out["roof_points_per_m2"] = round(len(inside) / (area * u.horizontal**2) if area > 0 else 0.0, 2)
         if b.solids and len(inside):
-            best = b.solids[max(b.solids, key=float)]
-            summary = roof_residuals_summary(best, frame.to_local(inside), outlier=u.height(1.0))
-            if summary.get("n"):
+            local = frame.to_local(inside)
+            for lod in sorted(b.solids, key=float):
+                summary = roof_residuals_summary(b.solids[lod], local, outlier=u.height(1.0))
+                if summary.get("n"):
+                    out[f"roof_point_rms_lod{lod.replace('.', '')}_m"] = round(float(summary["rms"]) * u.vertical, 3)
+            if summary.get("n"):  # the last, best solid's
                 out["roof_points_off_1m_share"] = round(float(summary["outlier_share"]), 3)
     return out
+
+
+def validity_attributes(validity: dict) -> dict:
+    """``validity_lod1`` / ``validity_lod13`` / ``validity_lod22`` attributes from
+    :attr:`~recon3d.buildings.lod.LodResult.validity`: "valid", or the val3dity codes and
+    names of the check that failed the LoD, e.g. "203 NON_PLANAR_POLYGON_DISTANCE_PLANE"."""
+    from recon3d.quality.meshcheck import ISSUE_NAMES
+
+    return {
+        f"validity_lod{lod.replace('.', '')}": "; ".join(f"{c} {ISSUE_NAMES.get(c, 'UNKNOWN')}" for c in codes) or "valid"
+        for lod, codes in validity.items()
+    }

@@ -653,7 +653,7 @@ def _label_point(ring: np.ndarray) -> tuple[float, float]:
 def _building_table(rows: list[dict]) -> str:
     head = ["id", "CityJSON", "LoD", "roof type", "roof planes", "ground z (m)", "roof z (m)", "height (m)",
             "area (m²)", "roof RMS (m)", "status", "fallback reason", "roof points / m²", "points > 1 m off (%)",
-            "cells without points (%)"]
+            "cells without points (%)", "roof point RMS per LoD (m)", "validity"]
     body = []
     for b in rows:
         bid = str(b.get("id"))
@@ -672,13 +672,33 @@ def _building_table(rows: list[dict]) -> str:
             _td(_fmt_density(b.get("roof_points_per_m2")), b.get("roof_points_per_m2")),
             _td(_share_pct(b.get("roof_points_off_1m_share")), b.get("roof_points_off_1m_share")),
             _td(_share_pct(b.get("footprint_empty_share")), b.get("footprint_empty_share")),
+            _lod_rms_cell(b), _validity_cell(b),
         ]
         body.append(f'<tr id="row-{html.escape(bid)}" data-b="{html.escape(bid)}">{"".join(cells)}</tr>')
-    return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11})
+    return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11, 15, 16})
             + "<p class=small>Click a column to sort. Heights: ground z and roof z in the CRS's vertical reference; "
             "height is the roof top above ground. Roof RMS: the model DSM against the measured DSM on the building's "
             "cells. Points more than 1 m off: the building's roof points that far from its best solid (step walls "
-            "included); cells without points: its footprint cells filled from their rim.</p>")
+            "included); cells without points: its footprint cells filled from their rim. Roof point RMS per LoD: all "
+            "its roof points against each LoD's roof. Validity: val3dity's check of each LoD built or tried.</p>")
+
+
+_LODS = (("1", "lod1"), ("1.3", "lod13"), ("2.2", "lod22"))
+
+
+def _lod_rms_cell(b: dict) -> str:
+    """"LoD1 1.20 · LoD2.2 0.08", sorted by the best LoD's figure."""
+    have = [(lod, b.get(f"roof_point_rms_{key}_m")) for lod, key in _LODS if _finite(b.get(f"roof_point_rms_{key}_m"))]
+    text = " · ".join(f"LoD{lod} {fmt_m(v)}" for lod, v in have)
+    return _td(html.escape(text) or NA, have[-1][1] if have else None, "l")
+
+
+def _validity_cell(b: dict) -> str:
+    """"valid", or each failing LoD with its val3dity codes."""
+    found = [(lod, b[f"validity_{key}"]) for lod, key in _LODS if b.get(f"validity_{key}")]
+    bad = [f"LoD{lod}: {v}" for lod, v in found if v != "valid"]
+    text = "; ".join(bad) or ("valid" if found else NA)
+    return _td(html.escape(text), text, "l" if not bad else "l bad")
 
 
 def _fmt_density(v) -> str:
