@@ -260,8 +260,7 @@ def build_lods(
     kind = roof_type(seg) if seg is not None else "unknown"
     planes = seg.planes if seg is not None else []
     ordered = dict(sorted(solids.items(), key=lambda kv: float(kv[0])))
-    validity = {lod: () for lod in ordered} | codes
-    validity = dict(sorted(validity.items(), key=lambda kv: float(kv[0])))
+    validity = dict(sorted(({lod: () for lod in ordered} | codes).items(), key=lambda kv: float(kv[0])))
     return LodResult(ordered, kind, status, None if status == "ok" else reasons.get(top), rms, planes, validity)
 
 

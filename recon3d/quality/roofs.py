@@ -368,13 +368,19 @@ def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, em
         out["roof_points_per_m2"] = round(len(inside) / (area * u.horizontal**2) if area > 0 else 0.0, 2)
         if b.solids and len(inside):
             local = frame.to_local(inside)
-            for lod in sorted(b.solids, key=float):
-                summary = roof_residuals_summary(b.solids[lod], local, outlier=u.height(1.0))
-                if summary.get("n"):
-                    out[f"roof_point_rms_lod{lod.replace('.', '')}_m"] = round(float(summary["rms"]) * u.vertical, 3)
-            if summary.get("n"):  # the last, best solid's
-                out["roof_points_off_1m_share"] = round(float(summary["outlier_share"]), 3)
+            fits = {lod: roof_residuals_summary(solid, local, outlier=u.height(1.0)) for lod, solid in b.solids.items()}
+            fits = {lod: f for lod, f in sorted(fits.items(), key=lambda kv: float(kv[0])) if f.get("n")}
+            for lod, f in fits.items():
+                out[f"roof_point_rms_{lod_key(lod)}_m"] = round(float(f["rms"]) * u.vertical, 3)
+            best = max(b.solids, key=float)
+            if best in fits:
+                out["roof_points_off_1m_share"] = round(float(fits[best]["outlier_share"]), 3)
     return out
+
+
+def lod_key(lod: str) -> str:
+    """The attribute suffix of a LoD: "2.2" -> "lod22" (``roof_point_rms_lod22_m``, ``validity_lod22``)."""
+    return "lod" + lod.replace(".", "")
 
 
 def validity_attributes(validity: dict) -> dict:
@@ -384,6 +390,6 @@ def validity_attributes(validity: dict) -> dict:
     from recon3d.quality.meshcheck import ISSUE_NAMES
 
     return {
-        f"validity_lod{lod.replace('.', '')}": "; ".join(f"{c} {ISSUE_NAMES.get(c, 'UNKNOWN')}" for c in codes) or "valid"
+        f"validity_{lod_key(lod)}": "; ".join(f"{c} {ISSUE_NAMES.get(c, 'UNKNOWN')}" for c in codes) or "valid"
         for lod, codes in validity.items()
     }

@@ -683,19 +683,21 @@ def _building_table(rows: list[dict]) -> str:
             "its roof points against each LoD's roof. Validity: val3dity's check of each LoD built or tried.</p>")
 
 
-_LODS = (("1", "lod1"), ("1.3", "lod13"), ("2.2", "lod22"))
-
-
 def _lod_rms_cell(b: dict) -> str:
     """"LoD1 1.20 · LoD2.2 0.08", sorted by the best LoD's figure."""
-    have = [(lod, b.get(f"roof_point_rms_{key}_m")) for lod, key in _LODS if _finite(b.get(f"roof_point_rms_{key}_m"))]
+    from recon3d.quality.roofs import lod_key
+
+    rms = {lod: b.get(f"roof_point_rms_{lod_key(lod)}_m") for lod in ("1", "1.3", "2.2")}
+    have = [(lod, v) for lod, v in rms.items() if _finite(v)]
     text = " · ".join(f"LoD{lod} {fmt_m(v)}" for lod, v in have)
     return _td(html.escape(text) or NA, have[-1][1] if have else None, "l")
 
 
 def _validity_cell(b: dict) -> str:
     """"valid", or each failing LoD with its val3dity codes."""
-    found = [(lod, b[f"validity_{key}"]) for lod, key in _LODS if b.get(f"validity_{key}")]
+    from recon3d.quality.roofs import lod_key
+
+    found = [(lod, b[f"validity_{lod_key(lod)}"]) for lod in ("1", "1.3", "2.2") if b.get(f"validity_{lod_key(lod)}")]
     bad = [f"LoD{lod}: {v}" for lod, v in found if v != "valid"]
     text = "; ".join(bad) or ("valid" if found else NA)
     return _td(html.escape(text), text, "l" if not bad else "l bad")
