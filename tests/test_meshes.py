@@ -214,16 +214,20 @@ def test_glb_keeps_surface_types_in_one_primitive(tmp_path):
     assert mesh.metadata["geometry_type"] == "Solid"
 
 
-def test_obj_one_object_per_building_with_materials_inside(tmp_path):
+def test_obj_one_object_and_material_per_building_with_surface_groups(tmp_path):
     city = city_of(*(make() for make, _ in SOLIDS.values()))
     write_obj(city, tmp_path / "b.obj")
     text = (tmp_path / "b.obj").read_text(encoding="utf-8")
     assert [line for line in text.splitlines() if line.startswith("o ")] == ["o b0", "o b1", "o b2"]
     first = text[text.index("o b0") : text.index("o b1")]
-    assert [line for line in first.splitlines() if line.startswith("usemtl")] == ["usemtl ground", "usemtl wall", "usemtl roof"]
-    per_building = trimesh.load(tmp_path / "b.obj", split_objects=True, group_material=False, process=False)
-    assert sorted(per_building.geometry) == ["b0", "b1", "b2"]
-    assert all(m.is_watertight for m in per_building.geometry.values())
+    assert [line for line in first.splitlines() if line.startswith(("usemtl", "g "))] == [
+        "usemtl b0", "g b0_ground", "g b0_wall", "g b0_roof"]
+    for options in ({}, {"split_objects": True, "group_material": False}):  # trimesh's default, and by object
+        per_building = trimesh.load(tmp_path / "b.obj", process=False, **options)
+        assert sorted(per_building.geometry) == ["b0", "b1", "b2"], options
+        assert all(m.is_watertight for m in per_building.geometry.values()), options
+    surfaces = trimesh.load(tmp_path / "b.obj", split_groups=True, group_material=False, process=False)
+    assert sorted(surfaces.geometry) == sorted(f"b{i}_{k}" for i in range(3) for k in ("ground", "wall", "roof"))
 
 
 def test_multisurface_is_exported_as_faces_and_not_checked(tmp_path):

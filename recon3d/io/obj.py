@@ -1,12 +1,16 @@
 """Wavefront OBJ + MTL export of the buildings of a :class:`~recon3d.core.city.CityModel`.
 
-One object (``o <id>`` and ``g <id>``) per building: its highest-LoD solid as the
-triangles of :meth:`~recon3d.core.city.Solid.mesh` (shared vertices, no
-T-junctions, so each building is a closed shell), with a material per semantic
-surface type (``usemtl roof``, ``wall``, ``ground``, defined in an MTL file beside
-the OBJ) inside the object. Blender imports one object per building; trimesh groups
-faces by material unless told ``trimesh.load(path, split_objects=True,
-group_material=False)``, which gives one mesh per building. A building whose
+One object (``o <id>``) per building: its highest-LoD solid as the triangles of
+:meth:`~recon3d.core.city.Solid.mesh` (shared vertices, no T-junctions, so each
+building is a closed shell), with one material of its own (``usemtl <id>``, defined in
+the MTL file beside the OBJ), so that Blender (by object) and trimesh's default load
+(by material) both give one mesh per building. Inside the object, one group per
+semantic surface type (``g <id>_ground``, ``_wall``, ``_roof``: trimesh's
+``split_groups=True`` or Blender's "Split by Group" gives the surfaces apart). Each
+building's material is the matte wall colour of the GLB; roofs and walls are not
+coloured apart, because a material per surface type makes trimesh merge every
+building's roofs into one mesh, and vertex colours would blend at the eaves (a
+vertex shared by a wall and a roof has one colour). A building whose
 surfaces close no volume (a MultiSurface read from another tool) has the comment
 :data:`SURFACES_COMMENT` after its ``g`` line. Coordinates stay in the model's local frame and in CRS
 units, Z up (OBJ has no georeferencing; the header comment gives the CRS and the
@@ -29,7 +33,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MATERIALS", "SURFACES_COMMENT", "highest_lod", "semantic_material", "surface_order", "write_obj"]
 
-#: Material name and diffuse RGB colour (0-1) per CityJSON semantic surface type.
+#: Group suffix and RGB colour (0-1) per CityJSON semantic surface type (3D Tiles
+#: colours every surface type; OBJ and GLB use the wall colour for the building).
 MATERIALS: dict[str, tuple[str, tuple[float, float, float]]] = {
     "RoofSurface": ("roof", (0.78, 0.27, 0.20)),
     "WallSurface": ("wall", (0.90, 0.87, 0.80)),
@@ -47,7 +52,7 @@ def highest_lod(building: Building) -> str | None:
 
 
 def semantic_material(kind: str) -> str:
-    """Material name ("roof", "wall", "ground") of a semantic surface type."""
+    """Group suffix ("roof", "wall", "ground") of a semantic surface type."""
     return MATERIALS.get(kind, MATERIALS[_DEFAULT_TYPE])[0]
 
 
@@ -86,19 +91,27 @@ def write_obj(city: CityModel, path: str | Path) -> None:
     path = Path(path)
     mtl_path = path.with_suffix(".mtl")
     with atomic_path(path) as tmp_obj, atomic_path(mtl_path) as tmp_mtl:
-        tmp_mtl.write_text(_mtl_text(), encoding="utf-8")
+        tmp_mtl.write_text(_mtl_text(_names(city)), encoding="utf-8")
         tmp_obj.write_text(_obj_text(city, mtl_path.name), encoding="utf-8")
     log.info("wrote %s and %s", path, mtl_path.name)
 
 
-def _mtl_text() -> str:
-    """MTL with one matte material per semantic type."""
-    blocks = [
-        f"newmtl {name}\nKa {r:.3f} {g:.3f} {b:.3f}\nKd {r:.3f} {g:.3f} {b:.3f}\n"
-        "Ks 0.000 0.000 0.000\nd 1.0\nillum 1\n"
-        for name, (r, g, b) in MATERIALS.values()
-    ]
-    return "# recon3d building materials\n\n" + "\n".join(blocks)
+def _names(city: CityModel) -> list[str]:
+    """Object and material name of each building written (those with a solid)."""
+    return [_name(b) for b in city.buildings if b.solids]
+
+
+def _name(building: Building) -> str:
+    """The building's id without whitespace (OBJ names end at the first blank)."""
+    return "_".join(str(building.id).split()) or "building"
+
+
+def _mtl_text(names: list[str]) -> str:
+    """MTL with one matte material per building, in the wall colour."""
+    r, g, b = MATERIALS["WallSurface"][1]
+    colour = f"Ka {r:.3f} {g:.3f} {b:.3f}\nKd {r:.3f} {g:.3f} {b:.3f}\nKs 0.000 0.000 0.000\nd 1.0\nillum 1\n"
+    return "# recon3d building materials: one per building\n\n" + "\n".join(
+        f"newmtl {name}\n{colour}" for name in dict.fromkeys(names))
 
 
 def _obj_text(city: CityModel, mtl_name: str) -> str:
@@ -123,16 +136,16 @@ def _obj_text(city: CityModel, mtl_name: str) -> str:
 
 
 def _write_building(out: io.StringIO, building: Building, solid: Solid, offset: int) -> int:
-    """Append one building (vertices, then faces grouped by material); return its vertex count."""
+    """Append one building (vertices, then faces grouped by surface type); return its vertex count."""
     vertices, faces, surface = solid.mesh()
-    name = "_".join(str(building.id).split()) or "building"
-    out.write(f"o {name}\ng {name}\n")
+    name = _name(building)
+    out.write(f"o {name}\nusemtl {name}\n")
     if solid.kind != "Solid":
         out.write(SURFACES_COMMENT + "\n")
     np.savetxt(out, vertices, fmt="v %.6f %.6f %.6f")
     order, ranges = surface_order(solid, surface)
     faces = faces[order] + offset
     for kind, (first, count) in ranges.items():
-        out.write(f"usemtl {semantic_material(kind)}\n")
+        out.write(f"g {name}_{semantic_material(kind)}\n")
         np.savetxt(out, faces[first : first + count], fmt="f %d %d %d")
     return len(vertices)
