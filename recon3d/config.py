@@ -209,6 +209,10 @@ class BuildingsConfig:
     regularize : bool
         Regularise detected outlines (dominant directions, straight edges); False keeps
         the Douglas-Peucker outlines.
+    image_outlines : bool
+        Frame stereo: move each detected outline's edges to the eaves where the two most
+        nadir images agree (:mod:`recon3d.buildings.image_outline`); False keeps the nDSM
+        outlines.
     """
 
     min_height: float = 2.5
@@ -225,6 +229,7 @@ class BuildingsConfig:
     min_smooth_share: float = 0.5
     min_edge: float = 0.75
     regularize: bool = True
+    image_outlines: bool = True
 
 
 @dataclass(frozen=True)

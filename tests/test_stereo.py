@@ -329,3 +329,32 @@ def test_three_images_make_a_better_dsm_than_two(stereo_run, tmp_path):
     two = _table(stereo_run, "DSM", "reference DSM")
     assert three["rms"] < two["rms"] - 0.05, (three, two)
     assert three["within_1m"] >= 95.0 and abs(three["mean"]) <= 0.2
+
+
+def _boundary_rms(a, b, step=0.1):
+    """RMS distance (m) between two outlines, sampled every ``step`` along both."""
+    def samples(p):
+        ring = p.exterior
+        return shapely.points([ring.interpolate(t).coords[0] for t in np.arange(0.0, ring.length, step)])
+    d = np.r_[shapely.distance(samples(a), b.exterior), shapely.distance(samples(b), a.exterior)]
+    return float(np.sqrt(np.mean(d**2)))
+
+
+def test_outlines_moved_to_the_eaves_the_images_show(stereo_run, scene):
+    """Detected outlines refined from the two images: closer to the true footprints than
+    the nDSM gives them (measured on this scene: median 0.33 m from the nDSM, 0.25 m
+    after the images; ``buildings.image_outlines=false`` gives the former)."""
+    truth = [shapely.geometry.shape(f["geometry"])
+             for f in json.loads((scene / "truth" / "footprints.geojson").read_text())["features"]]
+    errors = []
+    for b in stereo_run.city:
+        best = max(truth, key=lambda t: t.intersection(b.footprint).area / t.union(b.footprint).area)
+        if best.intersection(b.footprint).area / best.union(b.footprint).area >= 0.5:
+            errors.append(_boundary_rms(b.footprint, best))
+    assert len(errors) >= 6
+    assert np.median(errors) <= 0.29
+    sources = [b.attributes["outline_source"] for b in stereo_run.city]
+    assert sources.count("images") >= len(sources) // 2
+    assert stereo_run.auto["image_outlines"]["value"] == sources.count("images")
+    features = json.loads((stereo_run.out_dir / "footprints.geojson").read_text())["features"]
+    assert {f["properties"]["outline_source"] for f in features} <= {"images", "ndsm"}

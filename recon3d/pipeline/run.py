@@ -91,6 +91,7 @@ class RunState:
     dsm_consistent: np.ndarray | None = None  # stereo: DSM cells holding a guess the images agree with
     reference_date: str | None = None  # of the input data (LAS header), ISO
     dsm_filled: np.ndarray | None = None  # DSM cells holding no point at all, filled from their rim
+    views: list | None = None  # frame stereo: the images and their projections (recon3d.stereo.ortho.View)
     ortho: Any = None  # stereo: the true orthophoto (recon3d.stereo.ortho.OrthoImage)
     ortho_diff: Raster | None = None  # stereo: image difference of the matched pairs on the DSM
     dtm: Raster | None = None
@@ -790,6 +791,8 @@ def find_buildings(s: RunState) -> None:
             polygons = _on_observed_ground(s, polygons)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
         attrs = [{"source": "detected", **_rounded(detect.blob_descriptors(p))} for p in polygons]
+        if s.scene is not None and s.satellite_paths is None and cfg.image_outlines and polygons:
+            polygons = _outlines_from_images(s, polygons, attrs)
     s.labels = detect.label_footprints(polygons, s.dsm)
     heights = measure_heights(
         polygons, s.labels, s.dsm, s.dtm, percentile=cfg.roof_percentile, min_height=u.height(cfg.min_height)
@@ -832,6 +835,28 @@ def _on_observed_ground(s: RunState, polygons: list) -> list:
     if not keep.all():
         s.notes.append(f"{int((~keep).sum())} detected buildings dropped: the terrain around them was not matched")
     return [p for p, k in zip(polygons, keep, strict=True) if k]
+
+
+def _outlines_from_images(s: RunState, polygons: list, attrs: list[dict]) -> list:
+    """Frame stereo: the detected outlines moved edge by edge to the eaves two images
+    agree on (:mod:`recon3d.buildings.image_outline`); ``outline_source`` says which
+    outline each building kept."""
+    from recon3d.buildings import image_outline
+    from recon3d.stereo import ortho
+
+    if s.views is None:
+        s.views = ortho.frame_views(s.scene)
+    found = image_outline.refine_outlines(polygons, s.views, s.dsm, reach=s.units.length(1.5))
+    for a, r in zip(attrs, found, strict=True):
+        a.update(outline_source=r.source, outline_moved_share=round(r.moved_share, 3),
+                 outline_shift=round(r.mean_shift, 3))
+    moved = sum(r.source == "images" for r in found)
+    s.auto["image_outlines"] = {
+        "value": moved, "of": len(found),
+        "reason": "outlines moved to the eaves where the two most nadir images agree within "
+                  f"{image_outline.AGREEMENT} m (set buildings.image_outlines=false to keep the nDSM outlines)",
+    }
+    return [r.polygon for r in found]
 
 
 def _rounded(values: dict) -> dict:
@@ -964,7 +989,7 @@ def make_orthophotos(s: RunState) -> None:
         views = ortho.satellite_views(s.scene, s.dsm.crs, s.auto["stereo"].get("relative_bias_px", (0.0, 0.0)))
         pairs = [(0, 1)]
     else:
-        views = ortho.frame_views(s.scene)
+        views = s.views if s.views is not None else ortho.frame_views(s.scene)
         names = [v.name for v in views]
         pairs = [tuple(names.index(n) for n in record["images"]) for record in s.auto["stereo"]["pairs"]]
     gsd = ortho.image_gsd(views, s.dsm)

@@ -299,11 +299,11 @@ def _vertex_manifold(rings: list[np.ndarray]) -> list[MeshIssue]:
 
 def _orientation(solid: Solid) -> list[MeshIssue]:
     """405 when the triangulated shell has a signed volume <= 0 (normals point inward)."""
-    mesh = solid.to_trimesh()
-    if not len(mesh.faces):
+    vertices, faces, _ = solid.mesh()
+    if not len(faces):
         return []
-    v = mesh.vertices - mesh.vertices.mean(axis=0)
-    a, b, c = (v[mesh.faces[:, k]] for k in range(3))
+    v = vertices - vertices.mean(axis=0)
+    a, b, c = (v[faces[:, k]] for k in range(3))
     volume = float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
     if volume > 0:
         return []
