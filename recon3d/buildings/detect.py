@@ -320,10 +320,22 @@ def split_at_steps(
         if not wrong.any():
             break
         for shift in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            nf, nw, ns = (np.roll(a, shift, axis=(0, 1)) for a in (flooded, wrong, sub))
+            nf, nw, ns = (_shifted(a, shift) for a in (flooded, wrong, sub))
             take = wrong & ~nw & (ns == sub)
             flooded[take] = nf[take]
             wrong &= ~take
+    # the flood splits a step anywhere between its two sides: a step cell goes with the
+    # neighbour it is level with (the wall stands between the two cells of a step edge)
+    hb = np.nan_to_num(np.asarray(height, np.float64)[box])
+    on_step = cut & (strength[box] > 0) & ~wrong
+    for _ in range(2):
+        best, choice = np.full(hb.shape, np.inf), flooded.copy()
+        for shift in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            nh, nf, ns, nw = (_shifted(a, shift) for a in (hb, flooded, sub, wrong))
+            dz = np.where((ns == sub) & ~nw, np.abs(hb - nh), np.inf)
+            better = on_step & (dz < best)
+            best[better], choice[better] = dz[better], nf[better]
+        flooded = choice
     # pieces: a core's flood inside its part; parts not cut stay whole
     offset = int(lab.max()) + 1
     pieces = np.where(cut & ~wrong, flooded + offset, sub)
@@ -332,6 +344,13 @@ def split_at_steps(
     out = lab.copy()
     out[box] = pieces
     return _consecutive(out)
+
+
+def _shifted(a: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
+    """``a`` moved by (rows, cols) of one cell at most; cells moved in from outside are 0."""
+    p = np.pad(a, 1)
+    r, c = shift
+    return p[1 - r : p.shape[0] - 1 - r, 1 - c : p.shape[1] - 1 - c]
 
 
 def _consecutive(labels: np.ndarray) -> tuple[np.ndarray, int]:
