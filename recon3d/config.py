@@ -192,7 +192,8 @@ class BuildingsConfig:
         slope, that marks a party wall: a block is cut along lines of such steps crossing
         it from wall to wall when the pieces are buildings (``min_area``, at least
         ``min_split_width`` wide, not an annex enclosed by the rest; see
-        :func:`recon3d.buildings.detect.split_at_steps`); 0 switches it off.
+        :func:`recon3d.buildings.detect.split_at_steps`); 0 switches it off, and so
+        does a ``split_height`` of 0.
     min_split_width : float
         Narrowest piece (m) cut off a block at a step; narrower ones (annexes, lean-tos,
         the fringe of a wall) stay attached.

@@ -25,7 +25,6 @@ import dataclasses
 import time
 
 import _bench
-import numpy as np
 import shapely
 
 from recon3d.buildings import detect

@@ -233,6 +233,37 @@ def step_strength(height: np.ndarray, labels: np.ndarray, *, min_step: float) ->
     return out.astype(np.float32)
 
 
+def valley_depth(height: np.ndarray, labels: np.ndarray, *, reach: int, min_drop: float) -> np.ndarray:
+    """(rows, cols) float32: per cell, how far the roof rises on both sides of it, ``reach`` cells away.
+
+    A valley between two roofs (gables side by side, each house its own) is a line of
+    cells lower than the cells on both sides of it, along a row or a column of the grid;
+    the smaller of the two rises is the depth, kept above ``min_drop`` (0 elsewhere).
+    Only cells of one part are compared.
+
+    Parameters
+    ----------
+    height : (rows, cols) float
+    labels : (rows, cols) int
+    reach : int
+        Cells to either side (at least 1).
+    min_drop : float
+    """
+    h = np.nan_to_num(np.asarray(height, np.float64))
+    lab = np.asarray(labels)
+    k = max(1, int(reach))
+    out = np.zeros(h.shape, np.float64)
+    for hh, ll, oo in ((h, lab, out), (h.T, lab.T, out.T)):
+        if hh.shape[1] <= 2 * k:
+            continue
+        c = np.s_[:, k:-k]
+        left, right = np.s_[:, : -2 * k], np.s_[:, 2 * k :]
+        same = (ll[c] > 0) & (ll[left] == ll[c]) & (ll[right] == ll[c])
+        rise = np.minimum(hh[left] - hh[c], hh[right] - hh[c])
+        oo[c] = np.maximum(oo[c], np.where(same & (rise > min_drop), rise, 0.0))
+    return out.astype(np.float32)
+
+
 def split_at_steps(
     height: np.ndarray,
     labels: np.ndarray,
@@ -244,6 +275,8 @@ def split_at_steps(
     max_shared: float = 0.8,
     min_evidence: float = 0.5,
     border: float = 1.0,
+    valley_drop: float | None = None,
+    valley_reach: float = 1.0,
 ) -> tuple[np.ndarray, int]:
     """Cut parts into buildings along lines of height steps crossing them from wall to wall.
 
@@ -277,6 +310,10 @@ def split_at_steps(
         Shares of a piece's border, see above.
     border : float
         Width (CRS units) of the rim along the walls that is no core.
+    valley_drop : float, optional
+        Valleys whose sides rise more than this (CRS units) within ``valley_reach``
+        (CRS units; :func:`valley_depth`) cut too, as steps do: two roof plane sets, one
+        house each.
 
     Returns
     -------
@@ -286,6 +323,10 @@ def split_at_steps(
     """
     lab = np.asarray(labels).astype(np.int64)
     strength = step_strength(height, lab, min_step=min_step)
+    level = strength > 0  # cells of a step, which go with the side they are level with
+    if valley_drop is not None:
+        strength = np.maximum(strength, valley_depth(height, lab, reach=int(round(valley_reach / cell)),
+                                                         min_drop=valley_drop))
     step = strength > 0
     if not step.any():
         return _consecutive(lab)
@@ -327,7 +368,7 @@ def split_at_steps(
     # the flood splits a step anywhere between its two sides: a step cell goes with the
     # neighbour it is level with (the wall stands between the two cells of a step edge)
     hb = np.nan_to_num(np.asarray(height, np.float64)[box])
-    on_step = cut & (strength[box] > 0) & ~wrong
+    on_step = cut & level[box] & ~wrong
     for _ in range(2):
         best, choice = np.full(hb.shape, np.inf), flooded.copy()
         for shift in ((0, 1), (0, -1), (1, 0), (-1, 0)):
@@ -519,6 +560,9 @@ class Blobs:
         return np.array([not r for r in self.reason], bool)
 
 
+#: Rise (m) of the roof within 1 m on both sides of a valley that makes it a cut between
+#: two houses (22 degrees): terraces with a gable per house meet in valleys, not steps.
+VALLEY_DROP = 0.4
 #: Mean share of vegetation points above which a blob is a tree whatever its shape.
 VEGETATION_BLOB_SHARE = 0.3
 #: Mean share of vegetation points above which a rough blob is a tree; below it a rough
@@ -580,10 +624,11 @@ def find_blobs(
     res = ndsm.resolution
     min_cells = max(1, int(math.ceil(units.area(config.min_area) / res**2)))
     labels, n = split_by_height(ndsm.data, mask, units.height(config.split_height))
-    if n and config.split_step > 0:
+    if n and config.split_step > 0 and config.split_height > 0:  # split_height 0: blocks whole
         labels, n = split_at_steps(
             ndsm.data, labels, res, min_step=units.height(config.split_step), min_area=units.area(config.min_area),
-            min_width=units.length(config.min_split_width),
+            min_width=units.length(config.min_split_width), valley_drop=units.height(VALLEY_DROP),
+            valley_reach=units.length(1.0),
         )
     if n:
         labels = _merge_small(labels, n, min_cells)
@@ -756,6 +801,8 @@ def detect_buildings(
             poly = outline_mod._valid_polygon(poly.intersection(extent)) or raw
         polygons.append(shapely.orient_polygons(poly))
     polygons = _remove_overlaps(polygons, min_area / 4)
+    if config.split_step > 0:
+        polygons = _close_block_gaps(polygons, blobs.labels * np.r_[False, blobs.kept][blobs.labels], ndsm, ndsm.resolution)
     polygons.sort(key=lambda p: (-p.area, p.centroid.x, p.centroid.y))
     log.info("detected %d buildings", len(polygons))
     return polygons
@@ -857,6 +904,51 @@ def refine_labels(
     part = np.where(mask & (coarse > 0), coarse, part)
     fine[r0 * factor : r1 * factor, c0 * factor : c1 * factor] = part
     return fine, transform
+
+
+def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid: Raster, gap: float) -> list[shapely.Polygon]:
+    """Fill the gaps narrower than ``2 * gap`` left between the regularised parts of one block.
+
+    Each part is regularised on its own, so two parts of a block need not share their
+    wall exactly; a slit between them (along at least ``2 * gap`` of both) joins the
+    one it shares the longest border with, when that leaves a clean polygon.
+    Blocks are the connected regions of ``labels`` (kept blobs on ``grid``); buildings
+    apart stay apart.
+    """
+    if len(polygons) < 2:
+        return polygons
+    regions, _ = ndimage.label(labels > 0)
+    pts = shapely.point_on_surface(polygons)
+    col, row = ~grid.transform * (shapely.get_x(pts), shapely.get_y(pts))
+    row = np.clip(np.floor(row).astype(int), 0, regions.shape[0] - 1)
+    col = np.clip(np.floor(col).astype(int), 0, regions.shape[1] - 1)
+    region = regions[row, col]
+    out = list(polygons)
+    for r in np.unique(region[region > 0]):
+        members = np.flatnonzero(region == r)
+        if len(members) < 2:
+            continue
+        block = shapely.union_all([out[i] for i in members])
+        closed = block.buffer(gap, join_style="mitre").buffer(-gap, join_style="mitre")
+        gaps = closed.difference(block)
+        for g in getattr(gaps, "geoms", [gaps]):
+            if g.is_empty or g.geom_type != "Polygon":
+                continue
+            near = g.buffer(gap * 1e-3)
+            shared = np.array([out[i].boundary.intersection(near).length for i in members])
+            if np.sort(shared)[-2] < 2 * gap:  # a slit along a wall between two parts, not a notch
+                continue
+            k = members[int(np.argmax(shared))]
+            # an opening of a centimetre drops the zero-width spikes a union can leave
+            grown = out[k].union(g).buffer(-gap * 0.02, join_style="mitre").buffer(gap * 0.02, join_style="mitre")
+            # only a clean fill: one ring as simple as before, no new hole, no pinch
+            if (
+                grown.geom_type == "Polygon" and grown.is_valid and grown.exterior.is_simple
+                and len(grown.interiors) == len(out[k].interiors)
+                and abs(grown.area - out[k].area - g.area) <= 1e-3 * max(grown.area, 1.0)
+            ):
+                out[k] = shapely.orient_polygons(shapely.simplify(grown, gap * 0.02))
+    return out
 
 
 def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float) -> list[shapely.Polygon]:
