@@ -87,7 +87,7 @@ def main() -> None:
     parser.add_argument("--start", type=int, default=20, help="seed of the first random survey")
     parser.add_argument("--width", type=int, default=1200, help="image width (px); the survey's GSD is kept")
     parser.add_argument("--json", type=Path, help="write every figure here")
-    parser.add_argument("--quick", action="store_true", help=_bench.QUICK_HELP)
+    _bench.add_quick(parser)
     args = parser.parse_args()
     names = [n for n in args.named.split(",") if n]
     unknown = [n for n in names if n not in CONFIGURATIONS]
