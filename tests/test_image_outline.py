@@ -81,7 +81,7 @@ def test_a_wall_of_roof_colour_in_one_view_does_not_move_the_edge():
     views = [roof_wall, camera_view("b", (-0.15, -0.08), seed=2)]
     ring = np.asarray(shapely.geometry.polygon.orient(NDSM, 1.0).exterior.coords)[:-1]
     image = cv2.GaussianBlur(roof_wall.image.astype(np.float32), (0, 0), 1.0)
-    offsets, found = edge_offsets(ring, roof_wall, image, EAVE_Z, 1.5)
+    offsets, found = edge_offsets(ring, roof_wall, image, EAVE_Z)
     west = int(np.argmin(ring[:, 0] + np.roll(ring[:, 0], -1)))  # the edge with the smallest x
     assert found[west] and offsets[west] > 1.2  # measured 1.45: x = -1.15, the wall's foot (the true edge: 0.3 out)
     (result,) = refine_outlines([NDSM], views, box_dsm(NDSM))

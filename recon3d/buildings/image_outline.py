@@ -14,7 +14,7 @@ normal to where the images show it:
    not used here.)
 2. **Where the roof colour ends.** Along each edge, colours are sampled on lines
    across it (every :data:`STEP` metres along, :data:`PROFILE_STEP` across, up to
-   ``reach`` either side). The roof's own colour is the median of the inner half of
+   :data:`REACH` either side). The roof's own colour is the median of the inner half of
    the profiles (each roof plane has its shade, so per edge, not per building); a
    sample is roof when its colour is nearer to it than to the colour beyond the edge
    (see :func:`_edge_crossing`). The edge is where the share of roof samples across
@@ -41,6 +41,7 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
+from recon3d.buildings.outline import ring_corners
 from recon3d.core.raster import Raster
 
 __all__ = ["OutlineRefinement", "refine_outline", "refine_outlines"]
@@ -61,6 +62,10 @@ INNER_ROOF, OUTER_ROOF = 0.6, 0.35
 AGREEMENT = 0.25
 #: Edges shorter than this (m) are not searched (they follow their neighbours' corners).
 MIN_EDGE = 1.5
+#: Farthest (m) an edge moves either way.
+REACH = 1.5
+#: Depth (m) inside the outline of the DSM cells that give the eave height.
+EAVE_INSET = 1.0
 
 
 class OutlineRefinement(NamedTuple):
@@ -85,7 +90,7 @@ class OutlineRefinement(NamedTuple):
 
 
 def refine_outlines(
-    polygons: Sequence[shapely.Polygon], views: Sequence[Any], dsm: Raster, *, reach: float = 1.5,
+    polygons: Sequence[shapely.Polygon], views: Sequence[Any], dsm: Raster, *, metre: float = 1.0,
     blur: float = 1.0,
 ) -> list[OutlineRefinement]:
     """:func:`refine_outline` for every building, the images smoothed once.
@@ -98,8 +103,8 @@ def refine_outlines(
         The images (``image`` (h, w, bands)) and their ``project(x, y, z)``.
     dsm : Raster
         (rows, cols) heights, NaN where unknown.
-    reach : float
-        Farthest an edge moves either way (CRS units).
+    metre : float
+        One metre in CRS units (the lengths of this module are in metres).
     blur : float
         Gaussian sigma (pixels) applied to the images against sensor noise and texture.
     """
@@ -107,12 +112,12 @@ def refine_outlines(
 
     smooth = [cv2.GaussianBlur(np.asarray(v.image, dtype=np.float32), (0, 0), blur) for v in views]
     smooth = [s[..., None] if s.ndim == 2 else s for s in smooth]
-    return [refine_outline(p, views, smooth, dsm, reach=reach) for p in polygons]
+    return [refine_outline(p, views, smooth, dsm, metre=metre) for p in polygons]
 
 
 def refine_outline(
     polygon: shapely.Polygon, views: Sequence[Any], images: Sequence[np.ndarray], dsm: Raster, *,
-    reach: float = 1.5,
+    metre: float = 1.0,
 ) -> OutlineRefinement:
     """One building's outline moved edge by edge to where two images see its eaves.
 
@@ -123,22 +128,23 @@ def refine_outline(
     images : sequence of (h, w, bands) float32
         The views' images, smoothed.
     dsm : Raster
-    reach : float
+    metre : float
+        One metre in CRS units.
 
     Returns
     -------
     OutlineRefinement
     """
     unchanged = OutlineRefinement(polygon, "ndsm", 0.0, 0.0)
-    z = eave_height(polygon, dsm)
+    z = eave_height(polygon, dsm, EAVE_INSET * metre)
     if not np.isfinite(z):
         return unchanged
     pair = nadir_views(views, images, polygon, z)[:2]
     if len(pair) < 2:
         return unchanged
     ring = np.asarray(shapely.geometry.polygon.orient(polygon, 1.0).exterior.coords)[:-1]
-    (o1, f1), (o2, f2) = (edge_offsets(ring, view, image, z, reach) for view, image in pair)
-    agree = f1 & f2 & (np.abs(o1 - o2) <= AGREEMENT)
+    (o1, f1), (o2, f2) = (edge_offsets(ring, view, image, z, metre) for view, image in pair)
+    agree = f1 & f2 & (np.abs(o1 - o2) <= AGREEMENT * metre)
     if not agree.any():
         return unchanged
     offsets = np.where(agree, 0.5 * (o1 + o2), 0.0)
@@ -149,13 +155,13 @@ def refine_outline(
     if not new.is_valid or not 0.6 < new.area / polygon.area < 1.6:
         return unchanged
     length = np.linalg.norm(np.roll(ring, -1, axis=0) - ring, axis=1)
-    searched = length >= MIN_EDGE
+    searched = length >= MIN_EDGE * metre
     share = float(length[agree].sum() / max(length[searched].sum(), 1e-12))
     shift = float((length * np.abs(offsets))[agree].sum() / length[agree].sum())
     return OutlineRefinement(new, "images", share, shift)
 
 
-def eave_height(polygon: shapely.Polygon, dsm: Raster, inner: float = 1.0) -> float:
+def eave_height(polygon: shapely.Polygon, dsm: Raster, inner: float) -> float:
     """:data:`EAVE_PERCENTILE` of the DSM heights at least ``inner`` inside the outline (NaN if none)."""
     core = polygon.buffer(-inner)
     if core.is_empty:
@@ -191,7 +197,7 @@ def nadir_views(
     return [(views[k], images[k]) for _, k in sorted(ranked)]
 
 
-def edge_offsets(ring: np.ndarray, view: Any, image: np.ndarray, z: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+def edge_offsets(ring: np.ndarray, view: Any, image: np.ndarray, z: float, metre: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Where one image puts each edge of a counter-clockwise ring, along its outward normal.
 
     Parameters
@@ -201,7 +207,8 @@ def edge_offsets(ring: np.ndarray, view: Any, image: np.ndarray, z: float, reach
     view, image : View and its smoothed (h, w, bands) image
     z : float
         Eave height.
-    reach : float
+    metre : float
+        One metre in CRS units.
 
     Returns
     -------
@@ -211,17 +218,18 @@ def edge_offsets(ring: np.ndarray, view: Any, image: np.ndarray, z: float, reach
     """
     ring = ring[:, :2]
     n = len(ring)
-    across = np.arange(-reach, reach + 1e-9, PROFILE_STEP)
+    reach = REACH * metre
+    across = np.arange(-reach, reach + 1e-9 * metre, PROFILE_STEP * metre)
     inner, outer = across <= -0.5 * reach, across >= 0.5 * reach
     offsets, found = np.zeros(n), np.zeros(n, bool)
     for i in range(n):  # a loop over edges (a handful per building); each edge is vectorised
         a, b = ring[i], ring[(i + 1) % n]
         length = float(np.hypot(*(b - a)))
-        if length < MIN_EDGE:
+        if length < MIN_EDGE * metre:
             continue
         along = (b - a) / length
         normal = np.array([along[1], -along[0]])  # outward for a counter-clockwise ring
-        s = np.arange(0.15 * length, 0.85 * length + 1e-9, STEP)
+        s = np.arange(0.15 * length, 0.85 * length + 1e-9 * metre, STEP * metre)
         xy = a + s[:, None, None] * along + across[None, :, None] * normal  # (lines, samples, 2)
         colour = _colours(view, image, xy[..., 0], xy[..., 1], z)
         t = _edge_crossing(colour, inner, outer, across)
@@ -275,18 +283,17 @@ def _colours(view: Any, image: np.ndarray, x: np.ndarray, y: np.ndarray, z: floa
 def _moved_ring(ring: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:
     """(n, 2) corners of the ring whose edges moved by ``offsets`` along their outward normals.
 
-    A corner is the intersection of its two moved edges; between two (nearly) parallel
-    edges (a step in the outline), the midpoint of their moved ends.
+    A corner is where its two moved edges meet (:func:`~recon3d.buildings.outline.ring_corners`);
+    between two nearly parallel edges (within 10 degrees: a step in the outline, where
+    the intersection runs far off), the midpoint of their moved ends.
     """
     a = ring[:, :2]
     b = np.roll(a, -1, axis=0)
     along = (b - a) / np.maximum(np.linalg.norm(b - a, axis=1, keepdims=True), 1e-12)
-    normal = np.column_stack([along[:, 1], -along[:, 0]])
-    start, end = a + offsets[:, None] * normal, b + offsets[:, None] * normal
-    p0, d0, e0 = np.roll(start, 1, axis=0), np.roll(along, 1, axis=0), np.roll(end, 1, axis=0)  # previous edge
-    cross = d0[:, 0] * along[:, 1] - d0[:, 1] * along[:, 0]
-    gap = start - p0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (gap[:, 0] * along[:, 1] - gap[:, 1] * along[:, 0]) / cross
-    corner = np.where((np.abs(cross) < math.sin(math.radians(10.0)))[:, None], 0.5 * (e0 + start), p0 + t[:, None] * d0)
+    outward = np.column_stack([along[:, 1], -along[:, 0]])
+    start, end = a + offsets[:, None] * outward, b + offsets[:, None] * outward
+    corner = ring_corners(outward, np.einsum("ij,ij->i", start, outward))
+    d0 = np.roll(along, 1, axis=0)
+    parallel = np.abs(d0[:, 0] * along[:, 1] - d0[:, 1] * along[:, 0]) < math.sin(math.radians(10.0))
+    corner[parallel] = 0.5 * (np.roll(end, 1, axis=0) + start)[parallel]
     return corner if np.isfinite(corner).all() else None

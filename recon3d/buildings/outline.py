@@ -326,14 +326,26 @@ def _resolve_parallels(lines: list[_Line], merge_dist: float) -> list[_Line]:
 
 def _corners(lines: list[_Line]) -> np.ndarray | None:
     """(m, 2) corners: corner i is where line i-1 meets line i; None if two neighbours are parallel."""
-    n = np.array([ln.normal for ln in lines])
-    c = np.array([ln.c for ln in lines])
-    n0, c0 = np.roll(n, 1, axis=0), np.roll(c, 1)
-    det = n0[:, 0] * n[:, 1] - n0[:, 1] * n[:, 0]
-    if np.any(np.abs(det) < 1e-9):
-        return None
-    x = (c0 * n[:, 1] - c * n0[:, 1]) / det
-    y = (n0[:, 0] * c - n[:, 0] * c0) / det
+    corners = ring_corners(np.array([ln.normal for ln in lines]), np.array([ln.c for ln in lines]))
+    return None if np.isnan(corners).any() else corners
+
+
+def ring_corners(normal: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(m, 2) corners of a ring of lines ``x . normal[i] = c[i]``: corner i is where line
+    i-1 meets line i, NaN where the two are parallel.
+
+    Parameters
+    ----------
+    normal : (m, 2) float
+        Unit normals of the lines, in ring order.
+    c : (m,) float
+        Their offsets from the origin along the normals.
+    """
+    n0, c0 = np.roll(normal, 1, axis=0), np.roll(c, 1)
+    det = n0[:, 0] * normal[:, 1] - n0[:, 1] * normal[:, 0]
+    det = np.where(np.abs(det) < 1e-9, np.nan, det)
+    x = (c0 * normal[:, 1] - c * n0[:, 1]) / det
+    y = (n0[:, 0] * c - normal[:, 0] * c0) / det
     return np.column_stack([x, y])
 
 

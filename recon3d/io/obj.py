@@ -12,7 +12,7 @@ coloured apart, because a material per surface type makes trimesh merge every
 building's roofs into one mesh, and vertex colours would blend at the eaves (a
 vertex shared by a wall and a roof has one colour). A building whose
 surfaces close no volume (a MultiSurface read from another tool) has the comment
-:data:`SURFACES_COMMENT` after its ``g`` line. Coordinates stay in the model's local frame and in CRS
+:data:`SURFACES_COMMENT` after its ``usemtl`` line. Coordinates stay in the model's local frame and in CRS
 units, Z up (OBJ has no georeferencing; the header comment gives the CRS and the
 origin: ``world = local + origin``). Six decimals keep well under a millimetre.
 """

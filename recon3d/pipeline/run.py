@@ -846,7 +846,7 @@ def _outlines_from_images(s: RunState, polygons: list, attrs: list[dict]) -> lis
 
     if s.views is None:
         s.views = ortho.frame_views(s.scene)
-    found = image_outline.refine_outlines(polygons, s.views, s.dsm, reach=s.units.length(1.5))
+    found = image_outline.refine_outlines(polygons, s.views, s.dsm, metre=s.units.length(1.0))
     for a, r in zip(attrs, found, strict=True):
         a.update(outline_source=r.source, outline_moved_share=round(r.moved_share, 3),
                  outline_shift=round(r.mean_shift, 3))
