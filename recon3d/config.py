@@ -187,6 +187,16 @@ class BuildingsConfig:
         Height jump (m) between neighbouring cells that separates two buildings of one
         block (and a superstructure from its roof when it covers ``min_area``); 0 keeps
         connected blocks whole.
+    split_step : float
+        Height step (m) between neighbouring roof cells, not explained by the roof's
+        slope, that marks a party wall: a block is cut along lines of such steps crossing
+        it from wall to wall when the pieces are buildings (``min_area``, at least
+        ``min_split_width`` wide, not an annex enclosed by the rest; see
+        :func:`recon3d.buildings.detect.split_at_steps`); 0 switches it off, and so
+        does a ``split_height`` of 0.
+    min_split_width : float
+        Narrowest piece (m) cut off a block at a step; narrower ones (annexes, lean-tos,
+        the fringe of a wall) stay attached.
     grow_height : float
         Lower roofs attached to a building (annexes, lean-tos) at least this high (m)
         join it; equal to ``min_height`` to switch off.
@@ -220,6 +230,8 @@ class BuildingsConfig:
     roof_percentile: float = 90.0
     footprint_shift: float = 1.0
     split_height: float = 2.0
+    split_step: float = 0.3
+    min_split_width: float = 4.5
     grow_height: float = 2.0
     min_width: float = 1.5
     vegetation_min_height: float = 1.0
