@@ -561,8 +561,10 @@ class Blobs:
 
 
 #: Rise (m) of the roof within 1 m on both sides of a valley that makes it a cut between
-#: two houses (22 degrees): terraces with a gable per house meet in valleys, not steps.
-VALLEY_DROP = 0.4
+#: two houses (39 degrees): terraces with a gable per house meet in valleys, not steps.
+#: A gentler rule (0.4 m, 22 degrees) also cut L-shaped gable houses at their inner
+#: valley on real data (the Delft strip); split houses of gentler pitch need a step.
+VALLEY_DROP = 0.8
 #: Mean share of vegetation points above which a blob is a tree whatever its shape.
 VEGETATION_BLOB_SHARE = 0.3
 #: Mean share of vegetation points above which a rough blob is a tree; below it a rough
@@ -803,6 +805,9 @@ def detect_buildings(
     polygons = _remove_overlaps(polygons, min_area / 4)
     if config.split_step > 0:
         polygons = _close_block_gaps(polygons, blobs.labels * np.r_[False, blobs.kept][blobs.labels], ndsm, ndsm.resolution)
+    # the cuts between the parts of a block can leave zero-width needles on an outline
+    polygons = [q for q in map(outline_mod.remove_spikes, polygons) if q is not None and q.area >= min_area / 4]
+    polygons = [shapely.orient_polygons(q) for q in polygons]
     polygons.sort(key=lambda p: (-p.area, p.centroid.x, p.centroid.y))
     log.info("detected %d buildings", len(polygons))
     return polygons
@@ -919,7 +924,10 @@ def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid:
         return polygons
     regions, _ = ndimage.label(labels > 0)
     pts = shapely.point_on_surface(polygons)
-    col, row = ~grid.transform * (shapely.get_x(pts), shapely.get_y(pts))
+    inv = ~grid.transform
+    x, y = shapely.get_x(pts), shapely.get_y(pts)
+    col = inv.a * x + inv.b * y + inv.c
+    row = inv.d * x + inv.e * y + inv.f
     row = np.clip(np.floor(row).astype(int), 0, regions.shape[0] - 1)
     col = np.clip(np.floor(col).astype(int), 0, regions.shape[1] - 1)
     region = regions[row, col]

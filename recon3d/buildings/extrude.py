@@ -13,6 +13,7 @@ import math as _math
 import numpy as np
 import shapely
 
+from recon3d.buildings.outline import remove_spikes
 from recon3d.buildings.roofgrid import LodFailure, plane_height
 from recon3d.core.city import Solid
 from recon3d.core.geo import LocalFrame
@@ -21,10 +22,16 @@ __all__ = ["MinRootSets", "clean_footprint", "lod1_solid", "partition_solid"]
 
 
 def clean_footprint(polygon: shapely.Polygon, tolerance: float) -> shapely.Polygon | None:
-    """Footprint ready for extrusion: valid, repeated and collinear vertices removed,
+    """Footprint ready for extrusion: valid, repeated and collinear vertices and
+    zero-width spikes removed (a spike's edges would be shared by four faces),
     exterior counter-clockwise and holes clockwise. None when nothing with area is left.
     """
-    poly = shapely.make_valid(shapely.remove_repeated_points(polygon, tolerance))
+    poly = shapely.remove_repeated_points(polygon, tolerance)
+    if poly.geom_type == "Polygon" and poly.is_valid:
+        poly = remove_spikes(poly)
+        if poly is None:
+            return None
+    poly = shapely.make_valid(poly)
     parts = [g for g in getattr(poly, "geoms", [poly]) if g.geom_type == "Polygon" and g.area > 0]
     if not parts:
         return None

@@ -43,7 +43,7 @@ from affine import Affine
 
 log = logging.getLogger(__name__)
 
-__all__ = ["douglas_peucker", "dominant_orientation", "raster_outline", "regularize"]
+__all__ = ["douglas_peucker", "dominant_orientation", "raster_outline", "regularize", "remove_spikes"]
 
 
 # --------------------------------------------------------------------------- contours
@@ -458,6 +458,22 @@ def _remove_spikes(coords: np.ndarray, min_angle: float) -> np.ndarray:
             return coords
         coords = np.delete(coords, int(np.argmax(bad)), axis=0)
     return coords
+
+
+def remove_spikes(polygon: shapely.Polygon, min_angle: float = 1.0) -> shapely.Polygon | None:
+    """The polygon without needles: vertices of every ring whose interior angle is
+    below ``min_angle`` degrees, collinear vertices and repeated vertices are dropped.
+
+    Cutting a block into buildings can leave zero-width spikes (a part's outline runs
+    out along a cut and back); their edges would be shared by four faces of a solid.
+    None when no polygon with an area is left.
+    """
+    angle = math.radians(min_angle)
+    rings = [_remove_spikes(np.asarray(r.coords)[:-1, :2], angle) for r in (polygon.exterior, *polygon.interiors)]
+    if len(rings[0]) < 3:
+        return None
+    holes = [r for r in rings[1:] if len(r) >= 3]
+    return _valid_polygon(shapely.Polygon(rings[0], holes))
 
 
 def _samples(ring: shapely.LinearRing, cell: float) -> np.ndarray:
