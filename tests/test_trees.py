@@ -61,13 +61,16 @@ def test_trees_are_not_buildings_held_out(tmp_path, seed, group, before):
     row = bench.run_case(seed, tmp_path)
     assert row["group"] == group
     assert row["buildings"] == row["true_buildings"] and row["false_detections"] == 0
-    assert row["completeness"] >= 99.0  # measured 99.0-100 %
+    # measured 98.7-100 % (99.0-100 % before the neighbourhood's multi-return
+    # evidence: it takes a crown's fringe off seed 106's roofs, with 0.3 % of a roof)
+    assert row["completeness"] >= 98.5
     assert row["class_completeness"] >= 97.0  # measured 97.6-99.9 %
     # measured 88.6-95.5 % (before, against the true footprints: 52.6-83.7 %): crowns
     # against walls still widen some outlines
     assert row["class_correctness"] >= 87.0
-    # measured 0-3.2 % (before: 20.8-71.6 %)
-    assert row["vegetation_as_building"] <= 0.04 * row["vegetation_points"]
+    # measured 0-0.18 % (0-3.2 % with each point's own echo as the only multi-return
+    # evidence; before issue 19: 20.8-71.6 %)
+    assert row["vegetation_as_building"] <= 0.02 * row["vegetation_points"]
 
 
 def test_groves_in_the_family():

@@ -2,7 +2,7 @@
 
 Each point above the terrain gets covariance features of its neighbourhood
 (roughness, planarity, scattering...); a rough point that is also a multi-return echo
-or green (NDVI with a near-infrared channel, excess green with RGB only) is vegetation,
+(or among enough of them) or green (NDVI with a near-infrared channel, excess green with RGB only) is vegetation,
 after a majority vote among its neighbours. Without returns or colour, roughness alone
 decides, above a threshold no lower than three times the terrain's noise.
 :func:`vegetation_cells` turns the points into the share of vegetation per DSM cell,
@@ -24,7 +24,7 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["classify_vegetation", "planar_cells", "plane_tolerance", "point_features", "vegetation_cells", "vegetation_index"]
+__all__ = ["classify_vegetation", "multi_return_share", "planar_cells", "plane_tolerance", "point_features", "vegetation_cells", "vegetation_index"]
 
 
 def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[str, np.ndarray]:
@@ -105,6 +105,30 @@ GREEN_THRESHOLDS = {"ndvi": 0.3, "exg": 0.05}
 COLOUR_ONLY_THRESHOLDS = {"ndvi": 0.3, "exg": 0.15}
 
 
+def multi_return_share(multi: np.ndarray, rough: np.ndarray) -> float:
+    """Share of multi-return echoes among a point's neighbours that makes it vegetation evidence.
+
+    A pulse splits on only part of the leaves it meets: under a dense canopy a
+    quarter of a crown's echoes or fewer are multi-return, too few for a majority
+    vote on each point's own echo. Where the survey's rough points (crowns, mostly)
+    are less than half multi-return echoes, the neighbourhood's share is evidence
+    when it is closer to theirs than to the planar points' (roofs, whose edges split
+    pulses too): half way between the two, 0.1 at least. Where they are more, each
+    point's own echo is evidence enough, and a neighbourhood rule would only take
+    roof edges (inf is returned).
+
+    Parameters
+    ----------
+    multi, rough : (n,) bool
+        Per candidate point: an echo of a multi-return pulse; a rough neighbourhood.
+    """
+    crowns = float(np.mean(multi[rough])) if rough.any() else 1.0
+    if crowns >= 0.5:
+        return np.inf
+    planes = float(np.mean(multi[~rough])) if (~rough).any() else 0.0
+    return max(0.1, (crowns + planes) / 2)
+
+
 #: Share of multi-return echoes among the rough points below which a survey's returns
 #: say little (a dense canopy, a low penetration): the crown's shape is evidence too.
 FEW_RETURNS = 0.05
@@ -124,7 +148,10 @@ def classify_vegetation(
     A point at least ``vegetation_min_height`` above the terrain is vegetation when its
     neighbourhood is rough (RMS about the best plane above ``vegetation_roughness``;
     roofs and walls are planar) and it carries vegetation evidence: an echo of a
-    multi-return pulse (leaves let part of the pulse through, roofs do not), or a green
+    multi-return pulse (leaves let part of the pulse through, roofs do not), or a
+    neighbourhood with a share of such echoes nearer the survey's crowns' than its
+    roofs' (:func:`multi_return_share`; under a dense canopy most leaves return one
+    echo though their pulses split on the next), or a green
     colour (NDVI > 0.3, or excess green > 0.05 with RGB only). A cloud without colours
     whose rough points are almost never multi-return echoes (fewer than
     :data:`FEW_RETURNS`: no returns recorded, a dense canopy, a low penetration) also
@@ -178,7 +205,7 @@ def classify_vegetation(
     few_returns = True
     if have_returns:
         multi = np.asarray(a["number_of_returns"])[idx] > 1
-        evidence |= multi
+        evidence |= multi | (multi[feats["neighbours"]].mean(axis=1) >= multi_return_share(multi, is_rough))
         few_returns = not np.mean(multi[is_rough]) >= FEW_RETURNS if is_rough.any() else True
     colour = vegetation_index(cloud)
     if colour is not None:
