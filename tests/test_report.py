@@ -99,7 +99,9 @@ def test_report_numbers_are_the_json_values_rounded(delft_run):
         if p.get("roof_points_off_1m_share") is not None:  # per-building fit quality, % to 0.1
             assert cells[12] == f"{p['roof_points_per_m2']:.1f}"
             assert cells[13] == f"{100 * p['roof_points_off_1m_share']:.1f}"
-            assert cells[14] == f"{100 * p['footprint_empty_share']:.1f}"
+            n, area = p["roof_unmodelled_parts"], p["roof_unmodelled_area_m2"]
+            assert cells[14] == (f"{n} · {area:,.1f}" if n else "0")
+            assert cells[15] == f"{100 * p['footprint_empty_share']:.1f}"
     assert sum(r[10] == "fallback" for r in table) == report["buildings"]["statuses"].get("fallback", 0)
     # nothing with the digits of a float dump, no stage that did not run
     text = " ".join(parsed.text)

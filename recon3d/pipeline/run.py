@@ -920,6 +920,16 @@ def build_solids(s: RunState) -> None:
     failed = [b.id for b in s.city if not b.solids]
     if failed:
         s.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
+    missed = sorted(
+        ((b.attributes["roof_unmodelled_area_m2"], b.id) for b in s.city if b.attributes.get("roof_unmodelled_parts")),
+        reverse=True,
+    )
+    if missed:
+        s.notes.append(
+            f"{len(missed)} buildings have roof parts their model misses ({sum(a for a, _ in missed):.1f} m2 in all; "
+            "groups of roof points more than 1 m off, 2 m2 and more: roof_unmodelled_area_m2): "
+            + ", ".join(f"{i} {a:.1f} m2" for a, i in missed[:10])
+        )
 
 
 def _empty_share(s: RunState) -> np.ndarray:

@@ -653,7 +653,7 @@ def _label_point(ring: np.ndarray) -> tuple[float, float]:
 def _building_table(rows: list[dict]) -> str:
     head = ["id", "CityJSON", "LoD", "roof type", "roof planes", "ground z (m)", "roof z (m)", "height (m)",
             "area (m²)", "roof RMS (m)", "status", "fallback reason", "roof points / m²", "points > 1 m off (%)",
-            "cells without points (%)", "roof point RMS per LoD (m)", "validity"]
+            "unmodelled roof parts (m²)", "cells without points (%)", "roof point RMS per LoD (m)", "validity"]
     body = []
     for b in rows:
         bid = str(b.get("id"))
@@ -671,16 +671,27 @@ def _building_table(rows: list[dict]) -> str:
             _td(html.escape(str(b.get("reason") or "")) or "–", b.get("reason") or None, "l"),
             _td(_fmt_density(b.get("roof_points_per_m2")), b.get("roof_points_per_m2")),
             _td(_share_pct(b.get("roof_points_off_1m_share")), b.get("roof_points_off_1m_share")),
+            _unmodelled_cell(b),
             _td(_share_pct(b.get("footprint_empty_share")), b.get("footprint_empty_share")),
             _lod_rms_cell(b), _validity_cell(b),
         ]
         body.append(f'<tr id="row-{html.escape(bid)}" data-b="{html.escape(bid)}">{"".join(cells)}</tr>')
-    return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11, 15, 16})
+    return (_table(head, body, cls="sortable buildings", left={0, 1, 3, 10, 11, 16, 17})
             + "<p class=small>Click a column to sort. Heights: ground z and roof z in the CRS's vertical reference; "
             "height is the roof top above ground. Roof RMS: the model DSM against the measured DSM on the building's "
             "cells. Points more than 1 m off: the building's roof points that far from its best solid (step walls "
-            "included); cells without points: its footprint cells filled from their rim. Roof point RMS per LoD: all "
+            "included); unmodelled roof parts: the groups of its roof points more than 1 m inside the outline and 1 m "
+            "above or below its best solid, of 2 m² and more (a dormer, a stair house or a light well the model left "
+            "out), their count and area; cells without points: its footprint cells filled from their rim. Roof point RMS per LoD: all "
             "its roof points against each LoD's roof. Validity: val3dity's check of each LoD built or tried.</p>")
+
+
+def _unmodelled_cell(b: dict) -> str:
+    """"2 · 14.5": the count and area of the roof parts the model misses; "0" where none."""
+    n, area = b.get("roof_unmodelled_parts"), b.get("roof_unmodelled_area_m2")
+    if n is None:
+        return _td(NA, None)
+    return _td(f"{int(n)} · {_fmt_area(area)}" if n else "0", area)
 
 
 def _lod_rms_cell(b: dict) -> str:

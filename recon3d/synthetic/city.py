@@ -267,6 +267,12 @@ class BuildingTruth:
         World coordinates of the highest roof point (the roof check point).
     solid : Solid
         The LoD2 truth solid in local coordinates, with semantic surfaces.
+    parts : tuple of (str, Solid, shapely.Polygon)
+        Superstructures and recesses of the roof (``make_city(superstructures=True)``):
+        kind ("box": a stair house or plant room on a flat roof, "dormer" on a
+        slope, "well": the floor of a light well cut into a flat roof), the part's
+        solid (local; touching or inside ``solid``, not merged with it) and its plan
+        (world). Empty without superstructures.
     """
 
     id: str
@@ -280,6 +286,7 @@ class BuildingTruth:
     lod1_z: float
     top: np.ndarray
     solid: Solid
+    parts: tuple = ()
 
     @property
     def height(self) -> float:
@@ -389,9 +396,11 @@ def _make_building(
     frame: LocalFrame,
     rng: np.random.Generator,
     setback: float = 2.0,
+    parts_rng: np.random.Generator | None = None,
 ) -> BuildingTruth:
     """One building inside ``lot`` (local), standing on the terrain, at most 25 m high
-    above its lowest ground (less where the ground under it is steep)."""
+    above its lowest ground (less where the ground under it is steep); with
+    ``parts_rng``, maybe a superstructure or a light well (:func:`_roof_parts`)."""
     inner = lot.buffer(-setback, join_style="mitre")
     room = min(inner.bounds[2] - inner.bounds[0], inner.bounds[3] - inner.bounds[1])
     center = np.array(lot.centroid.coords[0])
@@ -410,13 +419,24 @@ def _make_building(
     zb, ze = zmin, zmax + eave_h
     zr = ze + rise
     world_poly = shapely.affinity.translate(poly, frame.origin[0], frame.origin[1])
+    parts, well, added = ((), None, 0.0)
+    if parts_rng is not None:
+        parts, well, added = _roof_parts(roof, poly, angle, center, (a, b), (zb, ze, zr), frame, parts_rng)
     if roof == "flat":
-        fp = clean_footprint(world_poly, 1e-6)
+        fp = clean_footprint(world_poly if well is None else world_poly.difference(well), 1e-6)
         solid = lod1_solid(fp, zb + frame.origin[2], ze + frame.origin[2], frame)
     else:
         solid = _place(_rect_solid(roof, a, b, zb, ze, zr), angle, center)
     top = _roof_top(roof, poly, angle, center, a, b, ze, zr)
-    volume = float(solid.to_trimesh().volume)
+    boxes = [(float(p.vertices[:, 2].max()), plan) for kind, p, plan in parts if kind == "box"]
+    if boxes:  # the highest stair house is the highest point
+        zr, box_plan = max(boxes, key=lambda t: t[0])
+        c = box_plan.centroid
+        top = np.array([c.x - frame.origin[0], c.y - frame.origin[1], zr])
+    elif well is not None and well.contains(shapely.Point(*(top[:2] + frame.origin[:2]))):
+        p = shapely.affinity.translate(poly, *frame.origin[:2]).difference(well).representative_point()
+        top = np.array([p.x - frame.origin[0], p.y - frame.origin[1], ze])
+    volume = float(solid.to_trimesh().volume) + added
     oz = frame.origin[2]
     return BuildingTruth(
         id=bid,
@@ -430,7 +450,106 @@ def _make_building(
         lod1_z=zb + volume / poly.area + oz,
         top=frame.to_world(top[None])[0],
         solid=solid,
+        parts=parts,
     )
+
+
+def _roof_parts(roof, poly, angle, center, half, heights, frame, rng):
+    """Roof parts for seven buildings in ten, one to three each, 1 m apart at least:
+    on a flat roof stair houses and plant rooms (1.5-5 m sides, 1.5-3 m high) and at
+    most one light well (2-5 m sides, its floor 3-6 m down); on a gable or shed roof
+    dormers (1.5-4 m wide, 1.5-3.5 m deep up the slope, their flat tops meeting it;
+    on either side of a gable). Hip and pyramid roofs get none.
+
+    Parameters
+    ----------
+    roof : str
+    poly : shapely.Polygon
+        The footprint, local.
+    angle : float
+        The building's rotation (radians); ``center`` (2,) its local position.
+    half : (a, b)
+        Half-sizes of a rectangular building (ridge along its x).
+    heights : (zb, ze, zr)
+        Local floor, eave and ridge heights.
+    frame : LocalFrame
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    parts : tuple of (kind, Solid, shapely.Polygon)
+        See :attr:`BuildingTruth.parts`.
+    well : shapely.Polygon or None
+        The light well's plan (world), to cut out of the roof.
+    volume : float
+        Volume (m3) the parts add to the building (the well's floor; the boxes and
+        dormers above the roof).
+    """
+    if rng.random() >= 0.7 or roof in ("hip", "pyramid"):
+        return (), None, 0.0
+    parts, well, volume = [], None, 0.0
+    for _ in range(int(rng.integers(1, 4))):
+        if roof == "flat":
+            part = _flat_roof_part(poly, angle, half, heights, frame, rng, well is None)
+        else:
+            part = _dormer(roof, angle, center, half, heights, frame, rng)
+        if part is None or any(part[0][2].distance(p[2]) < 1.0 for p in parts):
+            continue
+        parts.append(part[0])
+        volume += part[1]
+        if part[0][0] == "well":
+            well = part[0][2]
+    return tuple(parts), well, volume
+
+
+def _flat_roof_part(poly, angle, half, heights, frame, rng, well_allowed):
+    """((kind, solid, plan), volume) of a stair house or a light well, or None."""
+    zb, ze, _ = heights
+    ox, oy, oz = frame.origin
+    kind = "well" if well_allowed and rng.random() < 0.3 else "box"
+    room = poly.buffer(-2.0 if kind == "well" else -1.0, join_style="mitre")
+    if room.is_empty:
+        return None
+    x0, y0, x1, y1 = room.bounds
+    for _ in range(40):
+        w, d = rng.uniform(2.0, 5.0, 2) if kind == "well" else rng.uniform(1.5, 5.0, 2)
+        c = rng.uniform((x0, y0), (x1, y1))
+        rect = shapely.affinity.rotate(shapely.box(-w / 2, -d / 2, w / 2, d / 2), angle, use_radians=True, origin=(0, 0))
+        rect = shapely.affinity.translate(rect, *c)
+        if room.contains(rect):
+            break
+    else:
+        return None
+    plan = shapely.orient_polygons(shapely.affinity.translate(rect, ox, oy))
+    if kind == "box":
+        h = rng.uniform(1.5, 3.0)
+        return (kind, lod1_solid(plan, ze - 0.5 + oz, ze + h + oz, frame), plan), plan.area * h
+    floor = max(zb + 2.5, ze - rng.uniform(3.0, 6.0))
+    return (kind, lod1_solid(plan, zb + oz, floor + oz, frame), plan), plan.area * (floor - zb)
+
+
+def _dormer(roof, angle, center, half, heights, frame, rng):
+    """(("dormer", solid, plan), volume) of a flat-topped dormer on a slope, or None."""
+    (a, b), (_, ze, zr) = half, heights
+    ox, oy, oz = frame.origin
+    dw, dd = rng.uniform(1.5, 4.0), min(rng.uniform(1.5, 3.5), b - 2.0)
+    if dd < 1.5:
+        return None
+    xc = rng.uniform(-a + 1.0 + dw / 2, a - 1.0 - dw / 2)
+    ya = -b + rng.uniform(0.5, 1.5)
+    run = b if roof == "gable" else 2 * b  # the slope's horizontal length from the eave
+
+    def slope_z(y):
+        return ze + (zr - ze) * (y + b) / run
+
+    top = slope_z(ya + dd)
+    rect = shapely.box(xc - dw / 2, ya, xc + dw / 2, ya + dd)
+    if roof == "gable" and rng.random() < 0.5:  # the back slope
+        rect = shapely.affinity.scale(rect, 1.0, -1.0, origin=(0, 0))
+    rect = shapely.affinity.rotate(rect, angle, use_radians=True, origin=(0, 0))
+    plan = shapely.orient_polygons(shapely.affinity.translate(rect, center[0] + ox, center[1] + oy))
+    solid = lod1_solid(plan, ze - 1.0 + oz, top + oz, frame)
+    return ("dormer", solid, plan), dw * dd * (top - slope_z(ya)) / 2
 
 
 def _roof_rise(roof: str, a: float, b: float, rng: np.random.Generator) -> float:
@@ -718,6 +837,7 @@ def make_city(
     layout: str = "regular",
     trees: str = "beside",
     groves: bool = False,
+    superstructures: bool = False,
 ) -> SyntheticCity:
     """Build a procedural city, deterministic for a given seed.
 
@@ -747,6 +867,9 @@ def make_city(
     groves : bool
         Also one to three groves of 5 to 10 touching crowns (75 to 300 m2 of closed
         canopy) on open ground; ignored with ``trees="none"``.
+    superstructures : bool
+        Also roof parts (:attr:`BuildingTruth.parts`): stair houses and light wells
+        on flat roofs, dormers on gable and shed roofs, for seven buildings in ten.
 
     Returns
     -------
@@ -776,9 +899,12 @@ def make_city(
     lots = sorted(rng.choice(n_lots, size=n, replace=False).tolist())
     kinds = _building_kinds(n, rng)
     buildings = []
+    parts_rng = _rng(seed, 7) if superstructures else None
     for k, (lot, (plan_kind, roof)) in enumerate(zip(lots, kinds, strict=True)):
         poly = streets.lot(lot % streets.n, lot // streets.n)
-        buildings.append(_make_building(f"b{k + 1}", plan_kind, roof, poly, ground, frame, rng, plan.setback))
+        buildings.append(
+            _make_building(f"b{k + 1}", plan_kind, roof, poly, ground, frame, rng, plan.setback, parts_rng)
+        )
     footprints = [b.footprint_local for b in buildings]
     planted: list[TreeTruth] = []
     if trees != "none":
@@ -794,6 +920,8 @@ def make_city(
     }
     if groves and trees != "none":
         city.params["groves"] = True
+    if superstructures:
+        city.params["superstructures"] = True
     log.info(
         "synthetic city seed %d: %.0f m, %s terrain, %s layout, %d buildings, %d trees, %d triangles",
         seed, size, terrain, layout, len(buildings), len(planted), len(city.faces),
@@ -823,7 +951,12 @@ def _assemble(seed, size, crs, frame, terrain, streets, buildings, trees) -> Syn
         sem = np.asarray(mesh.metadata["semantics"])
         roof_mat = GRAVEL if b.roof_type == "flat" else TILES
         mat = np.where(sem == "RoofSurface", roof_mat, WALL)
-        add(mesh.vertices, mesh.faces, mat, rng.uniform(0.75, 1.2) * rng.uniform(0.92, 1.08, 3), k)
+        tint = rng.uniform(0.75, 1.2) * rng.uniform(0.92, 1.08, 3)
+        add(mesh.vertices, mesh.faces, mat, tint, k)
+        for _, part, _ in b.parts:
+            pm = part.to_trimesh()
+            roof = np.asarray(pm.metadata["semantics"]) == "RoofSurface"
+            add(pm.vertices, pm.faces, np.where(roof, roof_mat, WALL), tint, k)
     for k, t in enumerate(trees):
         tint = rng.uniform(0.8, 1.2, 3)
         for mesh, mat in _tree_meshes(t, frame.origin[2]):
