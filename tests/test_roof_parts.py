@@ -17,7 +17,7 @@ import shapely
 
 from recon3d.buildings.extrude import lod1_solid
 from recon3d.core.geo import Units
-from recon3d.quality.roofs import roof_height_at, unmodelled_roof_parts
+from recon3d.quality.roofs import point_to_roof, roof_height_at, unmodelled_roof_parts
 from recon3d.synthetic.city import make_city, truth_dsm
 from recon3d.synthetic.lidar import scan_city, write_scan
 
@@ -67,7 +67,8 @@ def test_unmodelled_roof_parts_finds_what_an_lod1_leaves_out(seed):
         if b.roof_type != "flat":
             continue
         model = lod1_solid(b.footprint, b.ground_z, b.eave_z, city.frame)
-        found = unmodelled_roof_parts(model, _roof_points(city.frame, scan, b, inset=0.0), b.footprint, city.frame, u)
+        local = _roof_points(city.frame, scan, b, inset=0.0)
+        found = unmodelled_roof_parts(point_to_roof(model, local), local, b.footprint, city.frame, u)
         truth = sorted((p[2].intersection(b.footprint.buffer(-1.0)).area for p in b.parts), reverse=True)
         assert len(found) == len(truth), (seed, b.id, found, truth)
         for area, true in zip(found, truth, strict=True):

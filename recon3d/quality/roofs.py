@@ -155,7 +155,11 @@ def roof_rms(solid: Solid, points: np.ndarray, *, outlier: float | None = None) 
 
 def roof_residuals_summary(solid: Solid, points: np.ndarray, *, outlier: float = 1.0) -> dict:
     """n, RMS (all and without outliers), mean, NMAD and outlier share of point-to-roof distances."""
-    r = point_to_roof(solid, points)
+    return _residuals_summary(point_to_roof(solid, points), outlier)
+
+
+def _residuals_summary(r: np.ndarray, outlier: float) -> dict:
+    """:func:`roof_residuals_summary` of given point-to-roof distances (NaN: outside the roof)."""
     r = r[np.isfinite(r)]
     if not len(r):
         return {"n": 0}
@@ -373,21 +377,22 @@ def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, em
         out["roof_points_per_m2"] = round(len(inside) / (area * u.horizontal**2) if area > 0 else 0.0, 2)
         if b.solids and len(inside):
             local = frame.to_local(inside)
-            fits = {lod: roof_residuals_summary(solid, local, outlier=u.height(1.0)) for lod, solid in b.solids.items()}
+            dz = {lod: point_to_roof(solid, local) for lod, solid in b.solids.items()}
+            fits = {lod: _residuals_summary(r, u.height(1.0)) for lod, r in dz.items()}
             fits = {lod: f for lod, f in sorted(fits.items(), key=lambda kv: float(kv[0])) if f.get("n")}
             for lod, f in fits.items():
                 out[f"roof_point_rms_{lod_key(lod)}_m"] = round(float(f["rms"]) * u.vertical, 3)
             best = max(b.solids, key=float)
             if best in fits:
                 out["roof_points_off_1m_share"] = round(float(fits[best]["outlier_share"]), 3)
-                missed = unmodelled_roof_parts(b.solids[best], local, b.footprint, frame, u)
+                missed = unmodelled_roof_parts(dz[best], local, b.footprint, frame, u)
                 out["roof_unmodelled_parts"] = len(missed)
                 out["roof_unmodelled_area_m2"] = round(float(sum(missed)), 1)
     return out
 
 
 def unmodelled_roof_parts(
-    solid: Solid,
+    dz: np.ndarray,
     local: np.ndarray,
     footprint: shapely.Polygon,
     frame: LocalFrame,
@@ -397,7 +402,8 @@ def unmodelled_roof_parts(
     min_area: float = 2.0,
 ) -> list[float]:
     """Areas (m2) of the roof parts a solid misses: connected groups of roof points
-    more than ``off`` metres above or below its roof, of ``min_area`` and more
+    more than ``off`` metres above or below its roof (``dz``, from
+    :func:`point_to_roof`), of ``min_area`` and more
     (dormers, stair houses, light wells, roof parts left out).
 
     Points within 1 m of the outline are left out (wall points lie there). A group's
@@ -407,10 +413,11 @@ def unmodelled_roof_parts(
 
     Parameters
     ----------
-    solid : Solid
-        The building's best solid (local coordinates).
+    dz : (n,) float
+        Vertical distances of the roof points to the building's best solid (NaN
+        outside its roof: not counted).
     local : (n, 3) float
-        Its roof points, local coordinates.
+        The roof points, local coordinates.
     footprint : shapely.Polygon
         World outline.
     frame : LocalFrame
@@ -425,15 +432,14 @@ def unmodelled_roof_parts(
     """
     from scipy import ndimage
 
-    dz = point_to_roof(solid, local)
-    world = frame.to_world(local)
     inner = footprint.buffer(-u.length(1.0))
     if inner.is_empty or not len(local):
         return []
+    world = frame.to_world(local)
     keep = shapely.contains_xy(inner, world[:, 0], world[:, 1])
     density = keep.sum() / (inner.area * u.horizontal**2)  # points per m2
     far = keep & (np.abs(np.nan_to_num(dz, nan=0.0)) > u.height(off))
-    if far.sum() < min_area * density or density <= 0:
+    if density <= 0 or far.sum() < min_area * density:
         return []
     cell = u.length(max(0.5, 1.5 / np.sqrt(density)))
     ij = np.floor((local[far, :2] - local[far, :2].min(axis=0)) / cell).astype(np.int64)

@@ -434,7 +434,7 @@ def _make_building(
         c = box_plan.centroid
         top = np.array([c.x - frame.origin[0], c.y - frame.origin[1], zr])
     elif well is not None and well.contains(shapely.Point(*(top[:2] + frame.origin[:2]))):
-        p = shapely.affinity.translate(poly, *frame.origin[:2]).difference(well).representative_point()
+        p = world_poly.difference(well).representative_point()
         top = np.array([p.x - frame.origin[0], p.y - frame.origin[1], ze])
     volume = float(solid.to_trimesh().volume) + added
     oz = frame.origin[2]
