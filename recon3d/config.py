@@ -70,6 +70,12 @@ class StereoConfig:
     max_partners : int
         Frame blocks: each image is matched with its best this many partners (overlap,
         base); 0 matches every usable pair.
+    slant : float or None
+        Census engine, frame pairs: disparity gradient (px per px) of the sheared census
+        windows matched besides the upright ones (see ``MatchParams.slant``), 0 for
+        upright windows only; None: 0.5 for pairs whose base-to-height ratio is
+        ``SLANT_BASE_TO_HEIGHT`` or more (a 45 degree roof face then changes disparity by
+        half a pixel per pixel or more), else 0.
     """
 
     max_disparities: int = 384
@@ -83,6 +89,7 @@ class StereoConfig:
     footprint_weight: float = 0.5
     max_object_height: float | None = None
     max_partners: int = 4
+    slant: float | None = None
 
     def __post_init__(self) -> None:
         if self.engine not in ("census", "sgbm"):
@@ -97,6 +104,8 @@ class StereoConfig:
             raise InputError(f"stereo.max_partners {self.max_partners}: at least 0 (0: every usable pair)")
         if self.max_object_height is not None and self.max_object_height <= 0:
             raise InputError(f"stereo.max_object_height {self.max_object_height}: must be > 0")
+        if self.slant is not None and not 0.0 <= self.slant < 1.0:
+            raise InputError(f"stereo.slant {self.slant}: from 0 (off) to below 1 px per px, or unset for automatic")
         if self.tile_size is not None and self.tile_size < 128:
             raise InputError(f"stereo.tile_size {self.tile_size}: at least 128 px (or unset for automatic)")
 

@@ -299,3 +299,13 @@ def test_common_area_of_a_wide_angle_survey(tmp_path):
     truth = _on_grid(read_raster(folder / "truth" / "views.tif"), state.dsm) >= 2
     assert (truth & state.common_area).sum() >= 0.70 * truth.sum()
     assert (state.common_area & ~truth).sum() <= 0.10 * truth.sum()
+    # at B/H 1.0 roof faces are foreshortened in one view: sheared census windows, said why
+    slant = state.auto["stereo"]["pairs"][0]["slant"]
+    assert slant["value"] == 0.5 and slant["reason"].startswith("base-to-height 1.0"), slant
+
+
+def test_upright_windows_at_a_narrow_base(surveys):
+    """nadir_pair (B/H 0.3) matches upright census windows only, and run.json says why."""
+    _, state = surveys["nadir_pair"]
+    slant = state.auto["stereo"]["pairs"][0]["slant"]
+    assert slant["value"] == 0.0 and "< 0.45" in slant["reason"], slant

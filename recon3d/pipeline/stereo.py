@@ -163,7 +163,8 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
     low = high = weight = None
     if bounds is not None:
         low, high, weight = bounds(pair)
-    params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine)
+    slant, slant_reason = _slant(pair, points, config)
+    params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine, slant=slant)
     result = match(left, right, params, guide=pair.color, low=low, high=high, weight=weight)
     # A filled-in disparity is a guess, even where the images agree with it: beside walls
     # such agreement is often chance, and carried the roof onto the street in 62 % of the
@@ -190,12 +191,38 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
         "matched_percent": round(100.0 * float(matched.sum()) / max(1, int(overlap.sum())), 2),
         "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[overlap]))), 1) if overlap.any() else 0.0,
         "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine") if k in result.params},
+        "slant": {"value": slant, "reason": slant_reason},
         "self_check": {k: v for k, v in check.items() if k != "uncovered"},
         "points": len(cloud),
     }
     if bounds is not None:
         record["constrained_percent"] = round(100.0 * float(np.mean(np.isfinite(low[overlap]))), 2) if low is not None else 0.0
     return cloud, record
+
+
+#: Base-to-height ratio from which frame pairs also match sheared census windows (see
+#: ``StereoConfig.slant``). On the survey family at 1000 px the sheared windows took
+#: wide-base surveys (B/H 0.6-1.0) from 1.71-2.96 to 1.71-2.78 m tolerant RMS and
+#: footprint completeness up by 1-4 points; below it roof faces are not foreshortened
+#: enough to need them.
+SLANT_BASE_TO_HEIGHT = 0.45
+#: Disparity gradient of the sheared windows when chosen automatically.
+SLANT = 0.5
+
+
+def _slant(pair: RectifiedPair, points: np.ndarray, config: StereoConfig) -> tuple[float, str]:
+    """The census windows' shear for a pair and why (run.json)."""
+    if config.slant is not None:
+        return float(config.slant), "config"
+    depth = ((np.asarray(points, np.float64) - pair.camera_left.center) @ pair.rotation.T)[:, 2]
+    depth = depth[depth > 0]
+    if config.engine != "census" or not depth.size:
+        return 0.0, "upright windows: no depth to judge the base by" if config.engine == "census" else "sgbm engine"
+    ratio = pair.baseline / float(np.median(depth))
+    if ratio >= SLANT_BASE_TO_HEIGHT:
+        return SLANT, (f"base-to-height {ratio:.2f} >= {SLANT_BASE_TO_HEIGHT}: roof faces are foreshortened "
+                       "in one view, sheared windows match them")
+    return 0.0, f"base-to-height {ratio:.2f} < {SLANT_BASE_TO_HEIGHT}: upright windows suffice"
 
 
 def _overlap(pair: RectifiedPair) -> np.ndarray:

@@ -62,6 +62,64 @@ def _census_row(padded, y, wy, wx, out):
 
 
 @njit(cache=True, parallel=True)
+def census_slanted(image, wy, wx, gx, gy):
+    """Census bit strings (uint64) of a window sheared for a slanted surface.
+
+    The neighbour at row offset ``dy`` and column offset ``dx`` is read at column
+    ``x + dx * (1 - gx) - gy * dy`` (linear interpolation along the row, edge columns
+    and rows repeated): the window of the other image seen on a surface whose disparity
+    grows by ``gx`` per column and ``gy`` per row. Same bit order as :func:`census`.
+    """
+    h, w = image.shape
+    ry, rx = wy // 2, wx // 2
+    out = np.zeros((h, w), np.uint64)
+    for y in prange(h):
+        bit = np.uint64(0)
+        for dy in range(-ry, ry + 1):
+            yy = min(max(y + dy, 0), h - 1)
+            for dx in range(-rx, rx + 1):
+                if dy == 0 and dx == 0:
+                    continue
+                shift = np.float32(dx) * (np.float32(1.0) - gx) - gy * np.float32(dy)
+                for x in range(w):
+                    xf = min(max(np.float32(x) + shift, np.float32(0.0)), np.float32(w - 1))
+                    x0 = int(xf)
+                    f = xf - np.float32(x0)
+                    x1 = min(x0 + 1, w - 1)
+                    v = image[yy, x0] * (np.float32(1.0) - f) + image[yy, x1] * f
+                    if v < image[y, x]:
+                        out[y, x] |= np.uint64(1) << bit
+                bit += np.uint64(1)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def cost_volume_slanted(cl, crs, l8, rmin, rmax, dmin, use_bt, trunc8, weight, cap, out):
+    """:func:`cost_volume` with several census strings per right pixel, ``crs`` (rows,
+    K, cols): the Hamming distance is the smallest over the K windows (upright and
+    slanted), so a roof face foreshortened in one view still matches."""
+    k_count = crs.shape[1]
+    h, w, ndisp = out.shape
+    for y in prange(h):
+        for x in range(w):
+            left_bits = cl[y, x]
+            lv = np.int32(l8[y, x])
+            for i in range(ndisp):
+                xr = min(max(x - dmin - i, 0), w - 1)
+                best = np.int32(64)
+                for k in range(k_count):
+                    best = min(best, np.int32(_popcount(left_bits ^ crs[y, k, xr])))
+                bt = np.int32(0)
+                if use_bt:
+                    bt = max(np.int32(rmin[y, xr]) - lv, lv - np.int32(rmax[y, xr]), np.int32(0))
+                    if weight == 1.0:
+                        bt = min(bt, trunc8, cap)
+                    else:
+                        bt = min(np.int32(np.rint(np.float32(min(bt, trunc8)) * weight)), np.int32(255), cap)
+                out[y, x, i] = np.uint8(best + bt)
+
+
+@njit(cache=True, parallel=True)
 def cost_volume(cl, cr, l8, rmin, rmax, dmin, use_bt, trunc8, weight, cap, out):
     """Fill ``out`` (rows, cols, D) uint8 with census Hamming distance + truncated BT cost.
 
