@@ -94,32 +94,6 @@ def census_slanted(image, wy, wx, gx, gy):
 
 
 @njit(cache=True, parallel=True)
-def cost_volume_slanted(cl, crs, l8, rmin, rmax, dmin, use_bt, trunc8, weight, cap, out):
-    """:func:`cost_volume` with several census strings per right pixel, ``crs`` (rows,
-    K, cols): the Hamming distance is the smallest over the K windows (upright and
-    slanted), so a roof face foreshortened in one view still matches."""
-    k_count = crs.shape[1]
-    h, w, ndisp = out.shape
-    for y in prange(h):
-        for x in range(w):
-            left_bits = cl[y, x]
-            lv = np.int32(l8[y, x])
-            for i in range(ndisp):
-                xr = min(max(x - dmin - i, 0), w - 1)
-                best = np.int32(64)
-                for k in range(k_count):
-                    best = min(best, np.int32(_popcount(left_bits ^ crs[y, k, xr])))
-                bt = np.int32(0)
-                if use_bt:
-                    bt = max(np.int32(rmin[y, xr]) - lv, lv - np.int32(rmax[y, xr]), np.int32(0))
-                    if weight == 1.0:
-                        bt = min(bt, trunc8, cap)
-                    else:
-                        bt = min(np.int32(np.rint(np.float32(min(bt, trunc8)) * weight)), np.int32(255), cap)
-                out[y, x, i] = np.uint8(best + bt)
-
-
-@njit(cache=True, parallel=True)
 def cost_volume(cl, cr, l8, rmin, rmax, dmin, use_bt, trunc8, weight, cap, out):
     """Fill ``out`` (rows, cols, D) uint8 with census Hamming distance + truncated BT cost.
 

@@ -735,7 +735,7 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
 
     h, w = gl.shape
     ndisp = dmax - dmin
-    bytes_per_row = w * ndisp * STRIP_BYTES_PER_VOXEL
+    bytes_per_row = w * ndisp * (STRIP_BYTES_PER_VOXEL + (params.slant > 0))  # + the sheared windows' costs
     strips = _strips(h, max(STRIP_OVERLAP, params.strip_memory_mb * 2**20 // bytes_per_row))
     log.debug("census SGM: %d strip(s), %d disparities", len(strips), ndisp)
     # the strips do not adapt to the memory free (the result would depend on the machine)
@@ -753,16 +753,20 @@ def _census_engine(gl, gr, dmin: int, dmax: int, params: MatchParams, bounds=Non
         # buffers of the largest strip, reused: first touching a page costs more than using it
         voxels = max((b - a) * w * (hi - lo) for (_, _, a, b), (lo, hi) in zip(strips, ranges, strict=True))
         cost_buf = np.empty(voxels, np.uint8)
+        sheared_buf = np.empty(voxels if len(cr) > 1 else 0, np.uint8)
         down_buf, up_buf = np.empty(voxels, np.uint16), np.empty(voxels, np.uint16)
         parts = []
         for (r0, r1, a, b), (lo, hi) in zip(strips, ranges, strict=True):
             shape = (b - a, w, hi - lo)
             size = math.prod(shape)
             c = cost_buf[:size].reshape(shape)
+            sheared = sheared_buf[:size].reshape(shape) if len(cr) > 1 else None
             t_down, t_up = down_buf[:size].reshape(shape), up_buf[:size].reshape(shape)
-            kernel = _sgm.cost_volume_slanted if cr.ndim == 3 else _sgm.cost_volume
-            kernel(cl[a:b], cr[a:b], l8[a:b], rmin[a:b], rmax[a:b], lo, trunc8 > 0,
-                   trunc8, np.float32(params.intensity_weight), cap, c)
+            for k, right_bits in enumerate(cr):  # the intensity term is the same for every window
+                _sgm.cost_volume(cl[a:b], right_bits[a:b], l8[a:b], rmin[a:b], rmax[a:b], lo, trunc8 > 0,
+                                 trunc8, np.float32(params.intensity_weight), cap, c if k == 0 else sheared)
+                if k:
+                    np.minimum(c, sheared, out=c)
             if bounds is not None:
                 _sgm.penalise_outside(c, *_outside_penalty(lo, hi - lo, *(x[a:b] for x in bounds)))
             _sgm.aggregate(c, gl[a:b], p1, p2, p2_min, params.p2_gradient_scale, params.paths, t_down, t_up)
@@ -809,9 +813,9 @@ class _numba_threads:
 def _cost_inputs(gl, gr, params: MatchParams, kernels):
     """Census bit strings of both images (uint64), the left grey levels (uint8) and the
     Birchfield-Tomasi interval [rmin, rmax] the right image spans within +-half a pixel
-    (uint8, grey levels; all (H, W)). With ``params.slant``, the right census strings
-    are (H, 5, W): upright, then sheared for disparity gradients +-slant along the
-    columns and along the rows."""
+    (uint8, grey levels; all (H, W)). The right census strings come as a list: the
+    upright window's, then with ``params.slant`` those of windows sheared for disparity
+    gradients +-slant along the columns and along the rows."""
     wy, wx = params.census_window
     ry, rx = wy // 2, wx // 2
     h = gl.shape[0]
@@ -821,9 +825,9 @@ def _cost_inputs(gl, gr, params: MatchParams, kernels):
     if params.slant > 0:
         g, zero = np.float32(params.slant), np.float32(0.0)
         grey = np.ascontiguousarray(gr, np.float32)
-        sheared = [kernels.census_slanted(grey, wy, wx, gx, gy)
-                   for gx, gy in ((g, zero), (-g, zero), (zero, g), (zero, -g))]
-        cr = np.stack([cr, *sheared], axis=1)
+        cr = [cr, *(kernels.census_slanted(grey, wy, wx, gx, gy) for gx, gy in ((g, zero), (-g, zero), (zero, g), (zero, -g)))]
+    else:
+        cr = [cr]
     r = np.clip(np.rint(gr), 0, 255).astype(np.uint16)
     half_l = ((r + np.concatenate([r[:, :1], r[:, :-1]], axis=1)) // 2).astype(np.uint8)
     half_r = ((r + np.concatenate([r[:, 1:], r[:, -1:]], axis=1)) // 2).astype(np.uint8)
