@@ -7,7 +7,7 @@ the time is spent, not who called it), with their cumulative time beside.
 
 ``--quick`` profiles the IGN village (71k points) with a tenth of the rows.
 
-    .venv/bin/python scripts/profile_run.py [--top 12] [--stages dsm,ground,dtm] -- ARGS OF recon3d run
+    .venv/bin/python scripts/profile_run.py [--top 12] [--sort cumulative] [--stages dsm,ground,dtm] -- ARGS OF recon3d run
     .venv/bin/python scripts/profile_run.py -- ../shared/data/lidar/delft_ahn3_strip.laz --crs EPSG:7415 -o /tmp/out
 """
 
@@ -49,14 +49,14 @@ def profiled_stages(names: set[str] | None) -> dict[str, tuple[float, cProfile.P
     return results
 
 
-def report(results: dict[str, tuple[float, cProfile.Profile]], top: int) -> None:
+def report(results: dict[str, tuple[float, cProfile.Profile]], top: int, sort: str = "tottime") -> None:
     total = sum(seconds for seconds, _ in results.values())
     print(f"\nprofiled stages: {total:.2f} s")
     for name, (seconds, profile) in results.items():
         print(f"\n== {name}: {seconds:.2f} s")
         text = io.StringIO()
         stats = pstats.Stats(profile, stream=text)
-        stats.sort_stats("tottime").print_stats(top)
+        stats.sort_stats(sort).print_stats(top)
         lines = text.getvalue().splitlines()
         start = next((i for i, line in enumerate(lines) if line.lstrip().startswith("ncalls")), 0)
         print("\n".join(line for line in lines[start:] if line.strip()))
@@ -68,6 +68,10 @@ def main() -> int:
     own = argv[: argv.index("--")] if "--" in argv else argv
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--top", type=int, default=12, help="functions shown per stage (default: %(default)s)")
+    parser.add_argument(
+        "--sort", choices=("tottime", "cumulative"), default="tottime",
+        help="order: own time (where it is spent) or cumulative (which call costs it); default %(default)s",
+    )
     parser.add_argument("--stages", help="comma-separated stage names to profile (default: all)")
     _bench.add_quick(parser)
     args = parser.parse_args(own)
@@ -87,7 +91,7 @@ def main() -> int:
         except SystemExit as exc:
             if exc.code not in (0, None):
                 return int(exc.code) if isinstance(exc.code, int) else 1
-        report(results, args.top)
+        report(results, args.top, args.sort)
     return 0
 
 
