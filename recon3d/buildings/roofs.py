@@ -394,7 +394,8 @@ def _thin(xyz: np.ndarray, spacing: float, max_density: float) -> np.ndarray:
 def _normals(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (z >= 0) and surface variation (lambda0 / sum lambda) from k neighbours."""
     idx = cKDTree(xyz).query(xyz, k=k)[1].reshape(len(xyz), -1)
-    nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
+    nb = xyz[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
     w, v = np.linalg.eigh(cov)
     normal = v[:, :, 0]
