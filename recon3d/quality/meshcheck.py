@@ -130,11 +130,11 @@ def check_solid(
     table = _RingTable.of(solid.surfaces)
     found, clean = _ring_issues(vertices, vid, table, snap, planarity_tol)
     issues += found
-    rings = np.split(vid[clean.index], clean.starts[1:]) if len(clean.sizes) else []
-    shell = _shell_issues(rings, list(clean.owner))
+    ids, following = vid[clean.index], clean.following()
+    shell = _shell_issues(np.column_stack([ids, ids[following]]), clean.owner[clean.ring])
     issues += shell
-    if not shell and rings:
-        issues += _vertex_manifold(rings)
+    if not shell and len(ids):
+        issues += _vertex_manifold(ids, following)
         issues += _orientation(solid)
     return issues
 
@@ -221,7 +221,7 @@ def _ring_issues(
     keyed = []  # (surface, ring position, order, issue): the order of a surface-by-surface check
     for r in np.flatnonzero(short | (repeats > 0) | ~usable):
         s, j = int(table.owner[r]), int(table.position[r])
-        where = f"ring {j}" if j else "outer ring"
+        where = _ring_name(j)
         if short[r]:
             keyed.append((s, j, 0, _issue(101, f"{where} has {table.sizes[r]} points", s)))
             continue
@@ -231,12 +231,15 @@ def _ring_issues(
             keyed.append((s, j, 1, _issue(101, f"{where} has {int(distinct[r])} distinct points", s)))
     for r in np.flatnonzero(collapsed):
         s, j = int(clean.owner[r]), int(clean.position[r])
-        where = f"ring {j}" if j else "outer ring"
-        keyed.append((s, j, 2, _issue(105, f"{where} has no area (degenerate surface)", s)))
+        keyed.append((s, j, 2, _issue(105, f"{_ring_name(j)} has no area (degenerate surface)", s)))
     for s, worst in _planarity(vertices, clean, tol):
         keyed.append((s, np.inf, 0, _issue(203, f"a vertex is {worst:.4f} from the fitted plane (tolerance {tol})", s)))
     keyed.sort(key=lambda k: k[:3])
     return [k[3] for k in keyed], clean
+
+
+def _ring_name(position: int) -> str:
+    return f"ring {position}" if position else "outer ring"
 
 
 def _collapsed(vertices: np.ndarray, table: _RingTable, snap: float) -> np.ndarray:
@@ -260,10 +263,10 @@ def _planarity(vertices: np.ndarray, table: _RingTable, tol: float) -> list[tupl
     if not len(table.index):
         return []
     surface = table.owner[table.ring]  # rings come surface by surface: groups are contiguous
-    starts = np.flatnonzero(np.r_[True, surface[1:] != surface[:-1]])
+    first = np.r_[True, surface[1:] != surface[:-1]]
+    starts, group = np.flatnonzero(first), np.cumsum(first) - 1
     points = vertices[table.index]
     mean = np.add.reduceat(points, starts, axis=0) / np.diff(np.r_[starts, len(points)])[:, None]
-    group = np.cumsum(np.r_[True, surface[1:] != surface[:-1]]) - 1
     centred = points - mean[group]
     scatter = np.add.reduceat(centred[:, :, None] * centred[:, None, :], starts, axis=0)
     normal = np.linalg.eigh(scatter)[1][:, :, 0]
@@ -298,13 +301,6 @@ def check_city(
     return report
 
 
-def _directed_edges(rings: list[np.ndarray], owners: list[int]) -> tuple[np.ndarray, np.ndarray]:
-    """(m, 2) directed edges of all rings and (m,) the surface owning each."""
-    edges = np.concatenate([np.column_stack([r, np.roll(r, -1)]) for r in rings])
-    owner = np.repeat(owners, [len(r) for r in rings])
-    return edges, owner
-
-
 def _pair_keys(pairs: np.ndarray) -> np.ndarray:
     """(m,) int64 keys of (m, 2) non-negative int pairs, in the pairs' lexicographic order
     (``np.unique`` on keys instead of rows: the same groups, several times faster)."""
@@ -313,11 +309,14 @@ def _pair_keys(pairs: np.ndarray) -> np.ndarray:
     return pairs[:, 0] * base + pairs[:, 1]
 
 
-def _shell_issues(rings: list[np.ndarray], owners: list[int]) -> list[MeshIssue]:
-    """302, 304 and 307 from how often, and in which direction, each ring edge is used."""
-    if not rings:
+def _shell_issues(edges: np.ndarray, owner: np.ndarray) -> list[MeshIssue]:
+    """302, 304 and 307 from how often, and in which direction, each ring edge is used.
+
+    ``edges`` (m, 2) are the directed edges of every ring (snapped vertex ids),
+    ``owner`` (m,) the surface of each.
+    """
+    if not len(edges):
         return [_issue(302, "no usable surface")]
-    edges, owner = _directed_edges(rings, owners)
     _, inverse, count = np.unique(_pair_keys(np.sort(edges, axis=1)), return_inverse=True, return_counts=True)
     uses = count[inverse.reshape(-1)]
     issues = []
@@ -353,15 +352,17 @@ def _flipped(edges: np.ndarray, owner: np.ndarray, uses: np.ndarray) -> list[Mes
     return [_issue(307, detail.format(bad[s], shared[s]), int(s)) for s in flipped]
 
 
-def _vertex_manifold(rings: list[np.ndarray]) -> list[MeshIssue]:
+def _vertex_manifold(centre: np.ndarray, following: np.ndarray) -> list[MeshIssue]:
     """303 where the surfaces around a vertex form several umbrellas (pinched vertices).
 
-    The link of vertex v joins, for every ring corner (prev, v, next), the nodes
-    (v, prev) and (v, next); v is manifold when its link is one connected cycle.
+    ``centre`` (m,) are the snapped vertex ids of every ring, ring after ring, and
+    ``following`` (m,) the position of each one's next vertex in its ring. The link
+    of vertex v joins, for every ring corner (prev, v, next), the nodes (v, prev) and
+    (v, next); v is manifold when its link is one connected cycle.
     """
-    centre = np.concatenate(rings)
-    prev = np.concatenate([np.roll(r, 1) for r in rings])
-    nxt = np.concatenate([np.roll(r, -1) for r in rings])
+    preceding = np.empty_like(following)
+    preceding[following] = np.arange(len(following))
+    prev, nxt = centre[preceding], centre[following]
     pairs = np.column_stack([np.r_[centre, centre], np.r_[prev, nxt]])
     _, first, inverse = np.unique(_pair_keys(pairs), return_index=True, return_inverse=True)
     nodes, inverse = pairs[first], inverse.reshape(-1)
