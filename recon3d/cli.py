@@ -112,10 +112,13 @@ def _with_old_heights(config, field_name: str | None, reference: str | None):
 @click.option("--config", "config_path", type=click.Path(path_type=Path), help="TOML file of stage settings.")
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.KEY=VALUE", help="Override one setting, e.g. --set dsm.resolution=0.5 (repeatable).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-@click.option("--workers", type=click.IntRange(min=1), help="Processes building the solids  [default: the CPUs available, from 32 buildings on]; the output does not depend on it.")
+@click.option("--workers", type=click.IntRange(min=1), help="Processes working the tiles and building the solids  [default: the CPUs available, where there is work for them]; the output does not depend on it.")
+@click.option("--scheduler", metavar="ADDRESS", help="Run the tiles and the solids on a Dask cluster, e.g. tcp://host:8786 (dask-jobqueue, Kubernetes...); its workers must see the output folder's file system.")
+@click.option("--dask", "local_dask", is_flag=True, help="Run the tiles and the solids on a Dask LocalCluster of this machine.")
+@click.option("--resume", is_flag=True, help="Take up the work of an earlier run of the same inputs and settings into OUT that was killed or failed (finished tiles are not done again); a run with --resume keeps its work when it fails.")
 @click.option("--max-memory", callback=_memory_cap, expose_value=False, metavar="SIZE", help="Memory the run may count on, e.g. 8G or 512M  [default: what the system has free]. Each large allocation (point reads, grids, matching strips, roof grids) is checked against it before it starts; the run stops naming the setting to change.")
 @click.pass_context
-def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, old_height_field, old_height_reference, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, overrides):
+def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, old_height_field, old_height_reference, gcps, breaklines, altimetry, dem, config_path, overwrite, workers, scheduler, local_dask, resume, overrides):
     """Reconstruct INPUT into OUT: a LAS/LAZ or PLY point cloud, LAS/LAZ tiles of one
     survey (the files, their folder or a quoted glob such as "tiles/*.laz"), a stereo
     scene folder, or two satellite images with RPCs (GeoTIFF RPC tags or an OSSIM .geom
@@ -165,6 +168,9 @@ def run(ctx, input_path, out_dir, crs, footprints, checkpoints, old_buildings, o
             overwrite=overwrite,
             workers=workers,
             progress=progress,
+            scheduler=scheduler or ("local" if local_dask else None),
+            resume=resume,
+            keep_points=False,
         )
     if not ctx.obj.get("quiet"):
         _print_summary(state)

@@ -33,6 +33,7 @@ __all__ = [
     "OrthoConfig",
     "PipelineConfig",
     "StereoConfig",
+    "TilesConfig",
 ]
 
 
@@ -353,6 +354,25 @@ class OrthoConfig:
             raise InputError("ortho.doubtful_threshold must lie in (0, 2) and ortho.doubtful_area be >= 0 (m2)")
 
 
+@dataclass(frozen=True)
+class TilesConfig:
+    """How the area of a run is cut into work tiles (:mod:`recon3d.pipeline.tiling`).
+
+    Attributes
+    ----------
+    size : float or None
+        Side of a work tile in metres, rounded down to a block of 32 DSM cells times a
+        power of two; None: the largest whose points fit one worker's share of the
+        memory. The products are the same whatever the size.
+    """
+
+    size: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.size is not None and not (1.0 <= self.size <= 1e6):
+            raise InputError(f"tiles.size {self.size}: between 1 and 1e6 (metres), or unset for automatic")
+
+
 #: Levels of detail :class:`LodConfig` can build.
 LODS = ("1", "1.3", "2.2")
 
@@ -369,6 +389,7 @@ class PipelineConfig:
     lod: LodConfig = field(default_factory=LodConfig)
     change: ChangeConfig = field(default_factory=ChangeConfig)
     ortho: OrthoConfig = field(default_factory=OrthoConfig)
+    tiles: TilesConfig = field(default_factory=TilesConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> PipelineConfig:

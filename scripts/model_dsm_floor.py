@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from recon3d.core.geo import parse_crs
-from recon3d.pipeline.run import model_check_cells, model_scan, run
+from recon3d.pipeline.run import model_check_cells, run
 from recon3d.quality.rasterize import surface_at
 from recon3d.terrain.dsm import grid_points, surface_points
 
@@ -46,9 +46,9 @@ def main() -> None:
     crs = args.crs or ("EPSG:7415" if args.laz == DELFT else None)
     with tempfile.TemporaryDirectory() as tmp:
         s = run(args.laz, Path(tmp) / "out", crs=parse_crs(crs) if crs else None)
-    cells = model_check_cells(s)
+    cells = model_check_cells(s.dsm, s.model_dsm, s.labels, s.vegetation_share, s.dsm_filled)
     inside = cells & (s.roof_cover >= 1.0)
-    scanned = model_scan(s).data
+    scanned = s.model_scan.data
     rows = {
         "report: model DSM - DSM": s.model_dsm.data - s.dsm.data,
         "like for like: model scan - DSM": scanned - s.dsm.data,

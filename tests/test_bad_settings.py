@@ -37,7 +37,8 @@ def test_grid_too_large_for_memory(tmp_path, monkeypatch):
 
 
 def test_max_memory_stops_a_run_before_it_reads(tmp_path):
-    """``--max-memory`` caps every guard: the point read is refused up front, one line, nothing written."""
+    """``--max-memory`` caps every guard: a cap below the smallest work tile stops the run
+    before any tile is worked, one line, nothing written."""
     import subprocess
     import sys
 

@@ -8,7 +8,7 @@ import sys
 import laspy
 import numpy as np
 import pytest
-from conftest import IGN, shared
+from conftest import DELFT, IGN, shared
 
 #: Products compared byte for byte (run.json and the reports name their inputs).
 PRODUCTS = ("dsm.tif", "dtm.tif", "ndsm.tif", "model_dsm.tif", "cloud.laz", "buildings.city.json",
@@ -116,3 +116,178 @@ def test_overlapping_tiles_keep_each_point_once(tiles, ign_run, tmp_path):
     assert any(f"{len(band.points)} points are in two overlapping tiles" in w for w in record["warnings"])
     assert _sha(out / "dsm.tif") == _sha(ign_run.out_dir / "dsm.tif")
     assert _sha(out / "cloud.laz") == _sha(ign_run.out_dir / "cloud.laz")
+
+
+# --------------------------------------------------------------------------- work tiles
+
+
+#: Every product whose bytes must not depend on the tiling (run.json names the tiling).
+ALL_PRODUCTS = (*PRODUCTS, "report.json")
+
+
+def _same_products(a, b, label):
+    for name in ALL_PRODUCTS:
+        assert _sha(a / name) == _sha(b / name), f"{label}: {name} differs"
+
+
+def test_tile_grid_covers_every_cell_once_in_morton_order():
+    from recon3d.pipeline.tiling import BLOCK, TileGrid, morton
+
+    grid = TileGrid((300, 520), BLOCK * 2, 10)
+    tiles = grid.tiles()
+    owner = np.zeros((300, 520), int)
+    for t in tiles:
+        owner[t.rows, t.cols] += 1
+    assert np.all(owner == 1)
+    codes = [int(morton(np.array([t.key[0]]), np.array([t.key[1]]))[0]) for t in tiles]
+    assert codes == sorted(codes)
+    # an aligned square of blocks is one run of Morton codes: cloud.laz's order is the tiles' order
+    r, c = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    inner = morton(r[2:4, 4:6].ravel(), c[2:4, 4:6].ravel())
+    assert np.ptp(inner) == len(inner) - 1
+    rows, cols = grid.tiles()[0].window(10, grid.shape)
+    assert (rows.start, cols.start) == (0, 0) and rows.stop == BLOCK * 2 + 10
+
+
+def test_window_sampling_gives_the_whole_grids_values():
+    """A window of a raster samples world points (bilinear and nearest) to the bit as the
+    whole raster does, also at cell edges, where a shifted transform would round otherwise."""
+    from affine import Affine
+
+    from recon3d.core.raster import Raster
+
+    rng = np.random.default_rng(0)
+    whole = Raster(rng.normal(size=(200, 300)).astype(np.float32), Affine(0.1, 0, 84999.95, 0, -0.1, 447650.05))
+    window = whole.window(slice(37, 150), slice(91, 260))
+    x = rng.uniform(84999.95 + 93 * 0.1, 84999.95 + 257 * 0.1, 20000)
+    y = rng.uniform(447650.05 - 147 * 0.1, 447650.05 - 40 * 0.1, 20000)
+    x[:5000] = 84999.95 + rng.integers(93, 257, 5000) * 0.1  # exactly on cell edges
+    for bilinear in (True, False):
+        assert np.array_equal(whole.sample(x, y, bilinear=bilinear), window.sample(x, y, bilinear=bilinear))
+    row, col = whole.rowcol(x, y)
+    wrow, wcol = window.rowcol(x, y)
+    assert np.array_equal(row - 37, wrow) and np.array_equal(col - 91, wcol)
+
+
+def test_point_store_reads_tiles_in_survey_order(tmp_path):
+    from recon3d.io.las import read_las
+    from recon3d.pipeline.points import LasStore, cell_rowcol
+
+    store = LasStore([shared(IGN)], tmp_path / "buckets")
+    whole = read_las(shared(IGN))
+    assert store.summary.count == len(whole) and np.array_equal(store.summary.bounds, whole.bounds)
+    from recon3d.core.raster import grid_for_bounds
+
+    lo, hi = whole.bounds
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], 0.5)
+    row, col = cell_rowcol(whole.xyz, transform)
+    halves = [store.read(slice(0, shape[0]), cols, transform) for cols in (slice(0, 90), slice(90, shape[1]))]
+    assert sum(len(h) for h in halves) == len(whole)
+    for h, cols in zip(halves, (slice(0, 90), slice(90, shape[1])), strict=True):
+        mine = (col >= cols.start) & (col < cols.stop)
+        assert np.array_equal(h.order, np.flatnonzero(mine))  # every point once, in file order
+        assert np.array_equal(h.cloud.xyz, whole.xyz[mine])
+        assert np.array_equal(h.cloud.classification, whole.classification[mine])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, crs", [("delft", "EPSG:7415"), ("ign", None)])
+def test_tile_sizes_and_workers_give_the_same_bytes(name, crs, request, tmp_path):
+    """Issue 18: the same products, byte for byte, for three tile sizes and 1, 2 and 3
+    workers (each run cuts the area into 8 to 75 tiles; the fixture run is one tile)."""
+    from recon3d.config import PipelineConfig
+    from recon3d.core.geo import parse_crs
+    from recon3d.pipeline.run import run
+
+    whole = request.getfixturevalue(f"{name}_run").out_dir
+    path = shared(DELFT if name == "delft" else IGN)
+    for size, workers in ((16, 1), (32, 2), (64, 3)):
+        out = tmp_path / f"s{size}w{workers}"
+        result = run(path, out, crs=parse_crs(crs) if crs else None, workers=workers, keep_points=False,
+                     config=PipelineConfig().with_overrides([f"tiles.size={size}"]))
+        assert result.auto["tiles"]["count"] > 1
+        _same_products(out, whole, f"{size} m tiles, {workers} workers")
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_gives_the_same_bytes(ign_run, tmp_path):
+    """The tiles and the solids on a dask.distributed LocalCluster: the local run's bytes."""
+    from recon3d.config import PipelineConfig
+    from recon3d.pipeline.run import run
+
+    out = tmp_path / "dask"
+    result = run(shared(IGN), out, scheduler="local", config=PipelineConfig().with_overrides(["tiles.size=30"]))
+    assert result.auto["executor"]["value"] == "dask local" and result.auto["tiles"]["count"] > 1
+    _same_products(out, ign_run.out_dir, "dask")
+
+
+def test_a_scheduler_that_does_not_answer(tmp_path):
+    import time
+
+    start = time.perf_counter()
+    result = _cli("run", shared(IGN), "-o", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:9", cwd=tmp_path)
+    _refused(result, "--scheduler tcp://127.0.0.1:9", "no Dask scheduler answers")
+    assert time.perf_counter() - start < 60
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_tile_that_fails_is_tried_again_then_named(tmp_path, monkeypatch):
+    """A tile failing once is done again; one failing twice stops the run with its name and
+    reason, and nothing is published."""
+    from recon3d.config import PipelineConfig
+    from recon3d.pipeline import passes
+    from recon3d.pipeline.executor import TileFailure
+    from recon3d.pipeline.run import run
+
+    real = passes.surface
+    calls = {}
+
+    def flaky(spec, tile, *args):
+        calls[tile.name] = calls.get(tile.name, 0) + 1
+        if tile.key == (0, 1) and (calls[tile.name] == 1 or always):
+            raise OSError("disk went away")
+        return real(spec, tile, *args)
+
+    monkeypatch.setattr(passes, "surface", flaky)
+    config = PipelineConfig().with_overrides(["tiles.size=32"])
+    always = False
+    run(shared(IGN), tmp_path / "once", config=config)
+    assert calls["0_1"] == 2 and (tmp_path / "once" / "dsm.tif").exists()
+    always = True
+    calls.clear()
+    with pytest.raises(TileFailure, match=r"1 of \d+ tiles failed twice in the surface pass: tile 0_1 .*disk went away"):
+        run(shared(IGN), tmp_path / "twice", config=config)
+    assert not (tmp_path / "twice").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["once"]
+
+
+@pytest.mark.slow
+def test_resume_after_a_kill_redoes_only_the_unfinished_tiles(delft_run, tmp_path):
+    """kill -9 in the middle of a tiled run, then ``--resume``: the tiles done are taken
+    up, the rest done, and the products are the bytes of an uninterrupted run; the work of
+    another run (other settings) is refused."""
+    import json
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    args = [sys.executable, "-m", "recon3d", "-q", "run", str(shared(DELFT)), "--crs", "EPSG:7415", "-o", str(out),
+            "--set", "tiles.size=16", "--workers", "1", "--resume"]
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list(tmp_path.glob(".out.partial-*/_work/tiles-*/*/ground.npz"))) < 20:
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = len(list(tmp_path.glob(".out.partial-*/_work/tiles-*/*/*.npz")))
+    assert done >= 20 and not out.exists()
+    other = subprocess.run([*args[:-1], "--set", "buildings.min_area=30", "--resume"], capture_output=True,
+                           text=True, timeout=300)
+    _refused(other, "different run", "config")
+    result = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    notes = json.loads((out / "run.json").read_text())["notes"]
+    assert any(f"took up the work of an earlier run ({done} tile results)" in n for n in notes), notes
+    _same_products(out, delft_run.out_dir, "resumed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # the killed run's work folder is gone

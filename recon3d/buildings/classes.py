@@ -10,7 +10,7 @@ from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
 
-__all__ = ["point_classes"]
+__all__ = ["footprint_depth", "point_classes"]
 
 
 def point_classes(
@@ -28,6 +28,7 @@ def point_classes(
     roughness: np.ndarray | None = None,
     tolerance: float = 0.0,
     plane_tolerance: float | None = None,
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
 
@@ -66,6 +67,9 @@ def point_classes(
     plane_tolerance : float, optional
         RMS about the local plane up to which a point lies on a plane (default
         ``tolerance``).
+    depth : (rows, cols) float, optional
+        :func:`footprint_depth` of ``labels``, when ``labels`` is a window of a larger
+        grid (a footprint may reach beyond the window).
     """
     xyz = cloud.xyz
     classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -81,11 +85,11 @@ def point_classes(
         vegetation = np.asarray(vegetation, bool) & ~is_ground
     if roof_surface is not None:
         # how far inside its footprint each point lies: walls stand on the outline
-        inside = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * grid.resolution
-        depth = np.zeros(len(cloud))
-        depth[ok] = inside[row[ok], col[ok]]
+        inside = footprint_depth(labels, grid.resolution) if depth is None else depth
+        point_depth = np.zeros(len(cloud))
+        point_depth[ok] = inside[row[ok], col[ok]]
         off_roof, crown = _off_roof(
-            xyz[:, 2], np.asarray(roof_surface, np.float64), roughness, depth, tolerance,
+            xyz[:, 2], np.asarray(roof_surface, np.float64), roughness, point_depth, tolerance,
             tolerance if plane_tolerance is None else plane_tolerance, units.length(1.0),
         )
         building &= ~off_roof
@@ -97,6 +101,11 @@ def point_classes(
     classes[building] = ASPRS.BUILDING
     classes[is_ground] = ASPRS.GROUND
     return classes
+
+
+def footprint_depth(labels: np.ndarray, cell: float) -> np.ndarray:
+    """(rows, cols) float distance (CRS units) of each footprint cell from its outline, 0 outside."""
+    return ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * cell
 
 
 def _off_roof(

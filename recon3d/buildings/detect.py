@@ -42,16 +42,19 @@ from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
+from recon3d.terrain.dsm import cell_index
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "Blobs",
+    "FineSurface",
     "blob_descriptors",
     "building_evidence",
     "building_mask",
     "detect_buildings",
     "find_blobs",
+    "fine_surface",
     "label_footprints",
     "refine_labels",
     "split_at_steps",
@@ -741,6 +744,7 @@ def detect_buildings(
     point_vegetation: np.ndarray | None = None,
     planar: np.ndarray | None = None,
     point_density: float | None = None,
+    fine: FineSurface | None = None,
 ) -> list[shapely.Polygon]:
     """Footprint polygons of building blobs, largest first.
 
@@ -763,7 +767,7 @@ def detect_buildings(
     units : Units
     cloud : PointCloud, optional
     dtm : Raster, optional
-        Both needed for the finer delineation.
+        Both needed for the finer delineation (or ``fine`` and ``dtm``).
     point_vegetation : (n,) bool, optional
         Vegetation points (:func:`classify_vegetation`), kept out of the outlines.
     planar : (rows, cols) float, optional
@@ -771,6 +775,9 @@ def detect_buildings(
         mostly off planes are trees (:func:`find_blobs`).
     point_density : float, optional
         Points per square metre (:func:`find_blobs`).
+    fine : FineSurface, optional
+        The cloud's highest first returns on the half-cell grid (:func:`fine_surface`),
+        instead of ``cloud`` and ``point_vegetation``.
 
     Returns
     -------
@@ -780,8 +787,10 @@ def detect_buildings(
     blobs = find_blobs(ndsm, vegetation, config, units, planar=planar, point_density=point_density)
     labels = np.where(np.r_[False, blobs.kept][blobs.labels], blobs.labels, 0)
     transform, res = ndsm.transform, ndsm.resolution
-    if cloud is not None and dtm is not None and labels.any():
-        labels, transform = refine_labels(labels, ndsm, cloud, dtm, config, units, vegetation=point_vegetation)
+    if fine is None and cloud is not None:
+        fine = fine_surface(cloud, ndsm, point_vegetation)
+    if fine is not None and dtm is not None and labels.any():
+        labels, transform = refine_labels(labels, ndsm, fine, dtm, config, units)
         res = transform.a
     min_area = units.area(config.min_area)
     min_edge = max(units.length(config.min_edge), 2 * res)
@@ -813,18 +822,75 @@ def detect_buildings(
     return polygons
 
 
+#: How many times finer than the DSM's the grid is on which outlines are delineated.
+FINE = 2
+
+
+@dataclass
+class FineSurface:
+    """The highest first return (not noise) in each cell of a grid :data:`FINE` times
+    finer than the DSM's, and whether that point is vegetation.
+
+    Attributes
+    ----------
+    z : (rows * FINE, cols * FINE) float64
+        NaN where no first return fell.
+    vegetation : (rows * FINE, cols * FINE) bool
+    """
+
+    z: np.ndarray
+    vegetation: np.ndarray
+
+
+def fine_surface(cloud: PointCloud, grid: Raster, vegetation: np.ndarray | None = None,
+                 *, order: np.ndarray | None = None) -> FineSurface:
+    """:class:`FineSurface` of ``cloud`` on ``grid`` (a window of the DSM grid, or all of it).
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    grid : Raster
+    vegetation : (n,) bool, optional
+    order : (n,) int, optional
+        The points' order in the survey (default: as given): of two first returns at the
+        same height in a cell, the later one is the highest.
+    """
+    rows, cols = grid.shape
+    keep = np.ones(len(cloud), bool)
+    a = cloud.attributes
+    if "return_number" in a:
+        keep &= np.asarray(a["return_number"]) <= 1
+    if cloud.classification is not None:
+        keep &= cloud.classification != ASPRS.NOISE
+    transform = grid.transform @ Affine.scale(1.0 / FINE)  # exact: the cell halves
+    origin = (grid.origin[0] * FINE, grid.origin[1] * FINE)
+    shape = (rows * FINE, cols * FINE)
+    z = np.full(shape[0] * shape[1], np.nan)
+    veg = np.zeros(shape[0] * shape[1], bool)
+    idx = np.flatnonzero(keep)
+    cell, ok = cell_index(cloud.xyz[idx], transform, shape, origin=origin)
+    if ok is not None:
+        idx, cell = idx[ok], cell[ok]
+    if len(idx):
+        rank = np.arange(len(cloud)) if order is None else np.asarray(order)
+        sort = np.lexsort((rank[idx], cloud.xyz[idx, 2], cell))  # by cell, height, survey order
+        idx, cell = idx[sort], cell[sort]
+        last = np.r_[cell[1:] != cell[:-1], True]  # the highest (then latest) point of each cell
+        z[cell[last]] = cloud.xyz[idx[last], 2]
+        if vegetation is not None:
+            veg[cell[last]] = np.asarray(vegetation, bool)[idx[last]]
+    return FineSurface(z.reshape(shape), veg.reshape(shape))
+
+
 def refine_labels(
     labels: np.ndarray,
     grid: Raster,
-    cloud: PointCloud,
+    fine: FineSurface,
     dtm: Raster,
     config: BuildingsConfig,
     units: Units,
-    *,
-    vegetation: np.ndarray | None = None,
-    factor: int = 2,
-) -> tuple[np.ndarray, Raster]:
-    """Blob labels on a grid ``factor`` times finer, delineated by the points.
+) -> tuple[np.ndarray, Affine]:
+    """Blob labels on a grid :data:`FINE` times finer, delineated by the points.
 
     A highest-point DSM marks a cell raised when any of its points is on the roof, so a
     blob's border wanders by up to a cell. Each fine cell within one coarse cell of a
@@ -840,25 +906,23 @@ def refine_labels(
     labels : (rows, cols) int
         Blob labels on ``grid`` (0 background).
     grid : Raster
-    cloud : PointCloud
+    fine : FineSurface
+        On ``grid`` (:func:`fine_surface`).
     dtm : Raster
     config : BuildingsConfig
     units : Units
-    vegetation : (n,) bool, optional
-    factor : int
 
     Returns
     -------
-    fine_labels : (rows * factor, cols * factor) int32
-    fine_grid : Raster
-        An empty raster (zeros) carrying the fine grid's transform and CRS.
+    fine_labels : (rows * FINE, cols * FINE) int32
+    fine_transform : Affine
     """
+    factor = FINE
     rows, cols = labels.shape
-    fres = grid.resolution / factor
     transform = grid.transform @ Affine.scale(1.0 / factor)
-    fine = np.zeros((rows * factor, cols * factor), np.int32)
+    out = np.zeros((rows * factor, cols * factor), np.int32)
     if not labels.any():
-        return fine, transform
+        return out, transform
     # work in the blobs' bounding box (plus a margin of two coarse cells)
     r0, c0 = np.maximum(np.argwhere(labels > 0).min(axis=0) - 2, 0)
     r1, c1 = np.minimum(np.argwhere(labels > 0).max(axis=0) + 3, (rows, cols))
@@ -866,38 +930,21 @@ def refine_labels(
     zone = np.where(lab > 0, lab, ndimage.grey_dilation(lab, size=3))
     coarse = lab.repeat(factor, 0).repeat(factor, 1)
     zone = zone.repeat(factor, 0).repeat(factor, 1)
-    frows, fcols = zone.shape
-    sub = transform @ Affine.translation(c0 * factor, r0 * factor)
-    keep = np.ones(len(cloud), bool)
-    a = cloud.attributes
-    if "return_number" in a:
-        keep &= np.asarray(a["return_number"]) <= 1
-    if cloud.classification is not None:
-        keep &= cloud.classification != ASPRS.NOISE
-    xyz = cloud.xyz
-    col = np.floor((xyz[:, 0] - sub.c) / fres).astype(np.int64)
-    row = np.floor((xyz[:, 1] - sub.f) / -fres).astype(np.int64)
-    keep &= (row >= 0) & (row < frows) & (col >= 0) & (col < fcols)
-    idx = np.flatnonzero(keep)
+    window = (slice(r0 * factor, r1 * factor), slice(c0 * factor, c1 * factor))
     near = ndimage.binary_dilation(zone > 0, iterations=factor)  # the points that can matter
-    idx = idx[near[row[idx], col[idx]]]
+    top = np.where(near, fine.z[window], np.nan)
     raised = coarse > 0
-    if len(idx):
-        # the highest first return of each fine cell; an empty cell takes its nearest
-        # filled cell within one coarse cell (a Voronoi cut of the surface, on the grid)
-        idx = idx[np.argsort(xyz[idx, 2], kind="stable")]
-        top = np.full(frows * fcols, -1, np.int64)
-        top[row[idx] * fcols + col[idx]] = idx
-        top = top.reshape(frows, fcols)
-        empty = top < 0
+    empty = ~np.isfinite(top)
+    if not empty.all():
+        # an empty cell takes its nearest filled cell within one coarse cell (a Voronoi
+        # cut of the surface, on the grid)
         dist, (nr, nc) = ndimage.distance_transform_edt(empty, return_indices=True)
-        pid = top[nr, nc]
-        found = (dist <= factor) & (pid >= 0)
-        p = pid[found]
-        h = xyz[p, 2] - dtm.sample(xyz[p, 0], xyz[p, 1], bilinear=False)
+        found = dist <= factor
+        nr, nc = nr[found], nc[found]
+        ground = dtm.data[r0 + nr // factor, c0 + nc // factor].astype(np.float64)
+        h = top[nr, nc] - ground
         up = np.nan_to_num(h, nan=-np.inf) >= units.height(min(config.grow_height, config.min_height))
-        if vegetation is not None:
-            up &= ~np.asarray(vegetation, bool)[p]
+        up &= ~fine.vegetation[window][nr, nc]
         raised[found] = up
     mask = raised & (zone > 0)
     # the blob is decided: only speckle goes, by a 3 x 3 majority vote (an opening would
@@ -907,8 +954,8 @@ def refine_labels(
     part = np.where(mask, zone, 0)
     # a blob must not lose its core to a neighbour's ring: coarse cells keep their own label
     part = np.where(mask & (coarse > 0), coarse, part)
-    fine[r0 * factor : r1 * factor, c0 * factor : c1 * factor] = part
-    return fine, transform
+    out[window] = part
+    return out, transform
 
 
 def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid: Raster, gap: float) -> list[shapely.Polygon]:

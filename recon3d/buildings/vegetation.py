@@ -12,6 +12,7 @@ which :mod:`recon3d.buildings.detect` uses to keep crowns out of the building ma
 from __future__ import annotations
 
 import logging
+from dataclasses import astuple, dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -24,17 +25,51 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["classify_vegetation", "multi_return_share", "planar_cells", "plane_tolerance", "point_features", "vegetation_cells", "vegetation_index"]
+__all__ = [
+    "Candidates",
+    "ReturnCounts",
+    "Survey",
+    "classify_vegetation",
+    "colour_kind",
+    "decide_vegetation",
+    "multi_return_share",
+    "nearest_neighbours",
+    "neighbour_radius",
+    "planar_cells",
+    "plane_tolerance",
+    "point_features",
+    "return_counts",
+    "vegetation_candidates",
+    "vegetation_cells",
+    "vegetation_index",
+]
 
 
-def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[str, np.ndarray]:
+#: Neighbours asked of the k-d tree beyond the k used, so that a tie at the k-th
+#: distance is broken by the points' survey order, not by the tree's traversal.
+TIE_SLACK = 4
+
+
+def point_features(
+    xyz: np.ndarray, *, k: int = 10, radius: float = np.inf, order: np.ndarray | None = None, workers: int = -1
+) -> dict[str, np.ndarray]:
     """Covariance features of each point's k nearest neighbours (the point included).
+
+    The neighbours are those within ``radius``, nearest first, ties broken by ``order``;
+    each neighbourhood is centred on its own point, so a point's features depend on its
+    neighbours alone, not on the other points given (a tile gives the values the whole
+    survey gives).
 
     Parameters
     ----------
     xyz : (n, 3) float
     k : int
         Neighbourhood size (clipped to n).
+    radius : float
+        Farthest neighbour (CRS units). A point with fewer than 3 neighbours within it
+        is isolated: roughness inf, scattering 1.
+    order : (n,) int, optional
+        The points' order in the survey (default: as given), which breaks distance ties.
     workers : int
         Threads for the k-d tree query (-1: all cores).
 
@@ -43,8 +78,8 @@ def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[s
     dict of str to (n,) float
         ``roughness`` (square root of the smallest eigenvalue: RMS distance to the best
         plane, CRS units), ``planarity`` (l2 - l3) / l1, ``linearity`` (l1 - l2) / l1
-        and ``scattering`` l3 / l1; and ``neighbours`` (n, k) int, indices of each
-        point's neighbours.
+        and ``scattering`` l3 / l1; ``neighbours`` (n, k) int, indices of each point's
+        neighbours (-1 beyond the radius) and ``count`` (n,) int, how many there are.
     """
     xyz = np.asarray(xyz, np.float64)
     n = len(xyz)
@@ -52,47 +87,99 @@ def point_features(xyz: np.ndarray, *, k: int = 10, workers: int = -1) -> dict[s
     out = {key: np.zeros(n) for key in names}
     if n == 0:
         out["neighbours"] = np.zeros((0, 0), np.int64)
+        out["count"] = np.zeros(0, np.int64)
         return out
     k = max(1, min(k, n))
-    centred = xyz - xyz.mean(axis=0)
-    _, nb = cKDTree(centred).query(centred, k=k, workers=workers)
-    nb = nb.reshape(n, k)
+    nb = nearest_neighbours(xyz, k, radius=radius, order=order, workers=workers)
+    valid = nb >= 0
+    count = valid.sum(axis=1)
     for s in range(0, n, CHUNK):  # bounded memory: (chunk, k, 3) at a time
         sl = slice(s, min(s + CHUNK, n))
-        p = centred[nb[sl]]
-        p -= p.mean(axis=1, keepdims=True)
-        w = np.linalg.eigvalsh(np.matmul(p.transpose(0, 2, 1), p) / k)
+        ok = valid[sl, :, None]
+        p = np.where(ok, xyz[np.where(valid[sl], nb[sl], 0)] - xyz[sl, None, :], 0.0)
+        m = count[sl, None, None]
+        p -= p.sum(axis=1, keepdims=True) / m
+        p *= ok
+        w = np.linalg.eigvalsh(np.matmul(p.transpose(0, 2, 1), p) / m)
         l3, l2, l1 = (np.clip(w[:, i], 0.0, None) for i in range(3))
         safe = np.where(l1 > 0, l1, 1.0)
         out["roughness"][sl] = np.sqrt(l3)
         out["planarity"][sl] = np.where(l1 > 0, (l2 - l3) / safe, 0.0)
         out["linearity"][sl] = np.where(l1 > 0, (l1 - l2) / safe, 0.0)
         out["scattering"][sl] = np.where(l1 > 0, l3 / safe, 0.0)
+    isolated = count < min(3, k)
+    out["roughness"][isolated] = np.inf
+    out["scattering"][isolated] = 1.0
+    out["planarity"][isolated] = out["linearity"][isolated] = 0.0
     out["neighbours"] = nb
+    out["count"] = count
     return out
+
+
+def nearest_neighbours(
+    xyz: np.ndarray, k: int, *, radius: float = np.inf, order: np.ndarray | None = None, workers: int = -1
+) -> np.ndarray:
+    """(n, k) int64 indices of each point's k nearest points within ``radius`` (itself
+    included), nearest first, ties broken by ``order``; -1 where there are fewer."""
+    n = len(xyz)
+    q = min(k + TIE_SLACK, n)
+    dist, nb = cKDTree(xyz).query(xyz, k=q, distance_upper_bound=radius, workers=workers)
+    dist, nb = dist.reshape(n, q), nb.reshape(n, q)
+    missing = nb >= n
+    nb[missing] = 0
+    rank = (np.arange(n) if order is None else np.asarray(order))[nb]
+    rank[missing] = np.iinfo(np.int64).max
+    pick = np.lexsort((rank, dist), axis=-1)[:, :k]  # by distance, then survey order
+    nb = np.take_along_axis(nb, pick, axis=1)
+    nb[np.take_along_axis(missing, pick, axis=1)] = -1
+    return nb
 
 
 #: Points per block of the covariance features (memory: block x k x 3 doubles).
 CHUNK = 200_000
 
 
-def vegetation_index(cloud: PointCloud) -> tuple[np.ndarray, str] | None:
+def neighbour_radius(spacing: float, units: Units) -> float:
+    """Farthest neighbour (CRS units) of a point's vegetation features: 8 m, or 20 point
+    spacings in a sparse survey. Ten neighbours lie within 2 spacings on a surface and
+    within about 1 m in a crown; a point without them within 8 m is isolated (a bird, a
+    wire), no roof. The bound is what lets a tile, read with twice that buffer, decide
+    its points exactly as the whole survey would; on the Delft strip it changes none of
+    the decisions an unbounded search makes (3 m changed 64 of 208,000)."""
+    return max(units.length(8.0), 20.0 * spacing)
+
+
+def colour_kind(cloud: PointCloud) -> str | None:
+    """Which colour index a cloud supports: "ndvi" (a near-infrared channel holding
+    data), "exg" (RGB only) or None (no colours, or all black)."""
+    a = cloud.attributes
+    if not {"red", "green", "blue"} <= set(a):
+        return None
+    if "nir" in a and np.any(np.asarray(a["nir"]) > 0):
+        return "ndvi"
+    r, g, b = (np.asarray(a[key], np.float64) for key in ("red", "green", "blue"))
+    return "exg" if np.any(r + g + b > 0) else None
+
+
+def vegetation_index(cloud: PointCloud, kind: str | None = "auto") -> tuple[np.ndarray, str] | None:
     """(n,) colour vegetation index and its name, None for a cloud without colours.
 
     NDVI (nir - red) / (nir + red) when a near-infrared channel holds data, else the
     normalised excess green (2 g - r - b) / (r + g + b) of the RGB channels (IGN LiDAR
-    HD files carry a ``nir`` dimension that may be all zeros).
+    HD files carry a ``nir`` dimension that may be all zeros). ``kind`` ("ndvi",
+    "exg" or None) is the survey's (:func:`colour_kind`), when the cloud is a tile of
+    it; "auto" asks the cloud itself.
     """
-    a = cloud.attributes
-    if not {"red", "green", "blue"} <= set(a):
+    if kind == "auto":
+        kind = colour_kind(cloud)
+    if kind is None:
         return None
+    a = cloud.attributes
     r, g, b = (np.asarray(a[key], np.float64) for key in ("red", "green", "blue"))
     with np.errstate(invalid="ignore", divide="ignore"):
-        if "nir" in a and np.any(np.asarray(a["nir"]) > 0):
+        if kind == "ndvi":
             nir = np.asarray(a["nir"], np.float64)
             return np.nan_to_num((nir - r) / (nir + r)), "ndvi"
-        if not np.any(r + g + b > 0):
-            return None
         return np.nan_to_num((2 * g - r - b) / (r + g + b)), "exg"
 
 
@@ -122,16 +209,162 @@ def multi_return_share(multi: np.ndarray, rough: np.ndarray) -> float:
     multi, rough : (n,) bool
         Per candidate point: an echo of a multi-return pulse; a rough neighbourhood.
     """
-    crowns = float(np.mean(multi[rough])) if rough.any() else 1.0
-    if crowns >= 0.5:
-        return np.inf
-    planes = float(np.mean(multi[~rough])) if (~rough).any() else 0.0
-    return max(0.1, (crowns + planes) / 2)
+    return ReturnCounts.of(multi, rough).share()
+
+
+@dataclass(frozen=True)
+class ReturnCounts:
+    """How many of a survey's vegetation candidates are rough, and multi-return echoes
+    among the rough and the smooth ones: summed over tiles, they give the survey's
+    rules (:meth:`share`, :meth:`few`) exactly."""
+
+    rough: int = 0
+    rough_multi: int = 0
+    smooth: int = 0
+    smooth_multi: int = 0
+
+    @classmethod
+    def of(cls, multi: np.ndarray, rough: np.ndarray) -> ReturnCounts:
+        multi, rough = np.asarray(multi, bool), np.asarray(rough, bool)
+        return cls(int(rough.sum()), int((multi & rough).sum()), int((~rough).sum()), int((multi & ~rough).sum()))
+
+    def __add__(self, other: ReturnCounts) -> ReturnCounts:
+        return ReturnCounts(*(a + b for a, b in zip(astuple(self), astuple(other), strict=True)))
+
+    def share(self) -> float:
+        """:func:`multi_return_share` of the counted points."""
+        crowns = self.rough_multi / self.rough if self.rough else 1.0
+        if crowns >= 0.5:
+            return np.inf
+        planes = self.smooth_multi / self.smooth if self.smooth else 0.0
+        return max(0.1, (crowns + planes) / 2)
+
+    def few(self) -> bool:
+        """Fewer than :data:`FEW_RETURNS` of the rough points are multi-return echoes (or none is rough)."""
+        return not (self.rough and self.rough_multi / self.rough >= FEW_RETURNS)
 
 
 #: Share of multi-return echoes among the rough points below which a survey's returns
 #: say little (a dense canopy, a low penetration): the crown's shape is evidence too.
 FEW_RETURNS = 0.05
+
+
+@dataclass
+class Candidates:
+    """The points tested for vegetation and their neighbourhoods (:func:`vegetation_candidates`).
+
+    Attributes
+    ----------
+    index : (m,) int
+        Which points of the cloud (those high enough above the terrain, not noise).
+    roughness, scattering : (m,) float
+    neighbours : (m, k) int
+        Neighbours among the candidates (-1 beyond the radius).
+    multi : (m,) bool or None
+        Echo of a multi-return pulse; None when the survey records no multiple returns.
+    colour : (m,) float or None
+        Colour vegetation index; None without colours.
+    """
+
+    index: np.ndarray
+    roughness: np.ndarray
+    scattering: np.ndarray
+    neighbours: np.ndarray
+    multi: np.ndarray | None
+    colour: np.ndarray | None
+
+    def rough(self, config: BuildingsConfig, units: Units, noise: float) -> np.ndarray:
+        """(m,) bool: rougher than ``vegetation_roughness`` and 3 x the noise."""
+        return self.roughness > max(units.height(config.vegetation_roughness), 3.0 * noise)
+
+
+@dataclass(frozen=True)
+class Survey:
+    """What the vegetation rules take from the whole survey rather than from a tile.
+
+    Attributes
+    ----------
+    returns : bool
+        Some points are echoes of multi-return pulses.
+    colour : str or None
+        The colour index the survey supports (:func:`colour_kind`).
+    counts : ReturnCounts
+        Over every candidate of the survey (:func:`return_counts`).
+    """
+
+    returns: bool
+    colour: str | None
+    counts: ReturnCounts = ReturnCounts()
+
+
+def vegetation_candidates(
+    cloud: PointCloud, dtm: Raster, config: BuildingsConfig, units: Units, survey: Survey, *,
+    radius: float = np.inf, order: np.ndarray | None = None,
+) -> Candidates:
+    """The points at least ``vegetation_min_height`` above the terrain (not noise), with
+    their covariance features among each other (:func:`point_features`)."""
+    xyz = cloud.xyz
+    height = xyz[:, 2] - dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
+    cand = np.nan_to_num(height, nan=-np.inf) >= units.height(config.vegetation_min_height)
+    c = cloud.classification
+    if c is not None:
+        cand &= c != ASPRS.NOISE
+    idx = np.flatnonzero(cand)
+    if len(idx) < 3:
+        idx = idx[:0]
+    feats = point_features(xyz[idx], k=config.vegetation_neighbours, radius=radius,
+                           order=None if order is None else np.asarray(order)[idx])
+    a = cloud.attributes
+    multi = np.asarray(a["number_of_returns"])[idx] > 1 if survey.returns and "number_of_returns" in a else None
+    colour = vegetation_index(cloud, survey.colour)
+    return Candidates(idx, feats["roughness"], feats["scattering"], feats["neighbours"], multi,
+                      None if colour is None else colour[0][idx])
+
+
+def return_counts(cand: Candidates, config: BuildingsConfig, units: Units, noise: float,
+                  which: np.ndarray | None = None) -> ReturnCounts:
+    """:class:`ReturnCounts` of the candidates (``which`` of them: a tile's own points)."""
+    if cand.multi is None:
+        return ReturnCounts()
+    multi, rough = cand.multi, cand.rough(config, units, noise)
+    if which is not None:
+        multi, rough = multi[which], rough[which]
+    return ReturnCounts.of(multi, rough)
+
+
+def decide_vegetation(
+    cand: Candidates, config: BuildingsConfig, units: Units, survey: Survey, *, noise: float = 0.0
+) -> np.ndarray:
+    """(m,) bool: which candidates are vegetation, after the majority vote among their
+    neighbours (the rules of :func:`classify_vegetation`)."""
+    if not len(cand.index):
+        return np.zeros(0, bool)
+    rough = units.height(config.vegetation_roughness)
+    is_rough = cand.rough(config, units, noise)
+    nb, valid = cand.neighbours, cand.neighbours >= 0
+    count = np.maximum(valid.sum(axis=1), 1)
+
+    def neighbour_mean(values: np.ndarray) -> np.ndarray:
+        return np.where(valid, values[np.where(valid, nb, 0)], False).sum(axis=1) / count
+
+    evidence = np.zeros(len(cand.index), bool)
+    few_returns = True
+    if cand.multi is not None:
+        evidence |= cand.multi | (neighbour_mean(cand.multi) >= survey.counts.share())
+        few_returns = survey.counts.few()
+    if cand.colour is not None:
+        evidence |= cand.colour > GREEN_THRESHOLDS[survey.colour]
+    if cand.colour is None and few_returns:  # shape alone: a noisy roof is as rough as its noise
+        evidence |= (cand.scattering > 0.05) & is_rough
+    if cand.colour is not None and cand.multi is None:
+        # photogrammetric surfaces: the matcher smooths tree crowns (roughness 0.04 m,
+        # like roofs' 0.035 m on the rendered city) while their colour stays green
+        veg = cand.colour > COLOUR_ONLY_THRESHOLDS[survey.colour]
+    else:
+        if few_returns and cand.colour is None:
+            rough = max(rough, 3.0 * noise)
+        veg = (cand.roughness > rough) & evidence
+    return neighbour_mean(veg) > 0.5
 
 
 def classify_vegetation(
@@ -142,6 +375,7 @@ def classify_vegetation(
     *,
     noise: float = 0.0,
     with_roughness: bool = False,
+    radius: float | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """(n,) bool: points of trees and bushes (ASPRS class 5 in cloud.laz).
 
@@ -160,7 +394,10 @@ def classify_vegetation(
     noise). A coloured cloud without returns (stereo) is judged on colour
     alone: dense matching smooths tree crowns until they are as planar as roofs. The
     decision is then smoothed by a majority vote among the ``vegetation_neighbours``
-    neighbours.
+    neighbours (within :func:`neighbour_radius`).
+
+    The whole cloud at once; the pipeline runs the same steps tile by tile
+    (:func:`vegetation_candidates`, :func:`return_counts`, :func:`decide_vegetation`).
 
     Parameters
     ----------
@@ -172,57 +409,37 @@ def classify_vegetation(
         Height noise of the cloud (CRS height units), e.g. the ground filter's estimate.
     with_roughness : bool
         Also return each point's roughness.
+    radius : float, optional
+        Farthest neighbour; :func:`neighbour_radius` of the cloud's point spacing by default.
 
     Returns
     -------
     vegetation : (n,) bool
     roughness : (n,) float, only with ``with_roughness``
         RMS of the point's neighbours about their best plane (CRS units), NaN for
-        points not tested (too low, noise).
+        points not tested (too low, noise), inf for isolated points.
     """
+    from recon3d.terrain.dsm import point_spacing
+
     n = len(cloud)
     out = np.zeros(n, bool)
     roughness = np.full(n, np.nan)
     result = (out, roughness) if with_roughness else out
     if n == 0:
         return result
-    xyz = cloud.xyz
-    height = xyz[:, 2] - dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
-    cand = np.nan_to_num(height, nan=-np.inf) >= units.height(config.vegetation_min_height)
-    c = cloud.classification
-    if c is not None:
-        cand &= c != ASPRS.NOISE
-    idx = np.flatnonzero(cand)
-    if len(idx) < 3:
-        return result
-    feats = point_features(xyz[idx], k=config.vegetation_neighbours)
-    roughness[idx] = feats["roughness"]
-    evidence = np.zeros(len(idx), bool)
     a = cloud.attributes
-    have_returns = "number_of_returns" in a and np.any(np.asarray(a["number_of_returns"]) > 1)
-    rough = units.height(config.vegetation_roughness)
-    is_rough = feats["roughness"] > max(rough, 3.0 * noise)
-    few_returns = True
-    if have_returns:
-        multi = np.asarray(a["number_of_returns"])[idx] > 1
-        evidence |= multi | (multi[feats["neighbours"]].mean(axis=1) >= multi_return_share(multi, is_rough))
-        few_returns = not np.mean(multi[is_rough]) >= FEW_RETURNS if is_rough.any() else True
-    colour = vegetation_index(cloud)
-    if colour is not None:
-        evidence |= colour[0][idx] > GREEN_THRESHOLDS[colour[1]]
-    if colour is None and few_returns:  # shape alone: a noisy roof is as rough as its noise
-        evidence |= (feats["scattering"] > 0.05) & is_rough
-    if colour is not None and not have_returns:
-        # photogrammetric surfaces: the matcher smooths tree crowns (roughness 0.04 m,
-        # like roofs' 0.035 m on the rendered city) while their colour stays green
-        veg = colour[0][idx] > COLOUR_ONLY_THRESHOLDS[colour[1]]
-    else:
-        if few_returns and colour is None:
-            rough = max(rough, 3.0 * noise)
-        veg = (feats["roughness"] > rough) & evidence
-    veg = veg[feats["neighbours"]].mean(axis=1) > 0.5
-    out[idx] = veg
-    log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(idx), config.vegetation_min_height)
+    returns = "number_of_returns" in a and bool(np.any(np.asarray(a["number_of_returns"]) > 1))
+    survey = Survey(returns, colour_kind(cloud))
+    if radius is None:
+        radius = neighbour_radius(point_spacing(cloud.xyz[:, :2]), units)
+    cand = vegetation_candidates(cloud, dtm, config, units, survey, radius=radius)
+    if not len(cand.index):
+        return result
+    roughness[cand.index] = cand.roughness
+    survey = Survey(returns, survey.colour, return_counts(cand, config, units, noise))
+    veg = decide_vegetation(cand, config, units, survey, noise=noise)
+    out[cand.index] = veg
+    log.info("vegetation: %d of %d points above %.1f m", int(veg.sum()), len(cand.index), config.vegetation_min_height)
     return result
 
 
@@ -258,10 +475,11 @@ def vegetation_cells(
         if "number_of_returns" not in a:
             return np.zeros(grid.shape, np.float32 if share else bool)
         multi = (np.asarray(a["number_of_returns"]) > 1).astype(np.float64)
-        values = np.nan_to_num(grid_points(np.column_stack([xyz[:, :2], multi]), grid.transform, grid.shape, reducer="mean"))
+        values = np.nan_to_num(grid_points(np.column_stack([xyz[:, :2], multi]), grid.transform, grid.shape,
+                                           reducer="mean", origin=grid.origin))
         return values.astype(np.float32) if share else values > 0.5
     depth = 1.5 * grid.resolution if depth is None else depth
-    top = grid_points(xyz, grid.transform, grid.shape, reducer="max")
+    top = grid_points(xyz, grid.transform, grid.shape, reducer="max", origin=grid.origin)
     row, col = grid.rowcol(xyz[:, 0], xyz[:, 1])
     rows, cols = grid.shape
     ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)

@@ -49,12 +49,19 @@ class Raster:
     crs : pyproj.CRS or None
     tags : dict
         Free metadata written as GeoTIFF tags (product name, height reference...).
+    origin : (row, col) int
+        For a window of a larger grid (:meth:`window`): the cell of that grid that
+        ``data[0, 0]`` is, ``transform`` being the larger grid's. Lookups of world points
+        compute the larger grid's fractional cell index and subtract ``origin``, an
+        exact operation, so a tile's window gives bit for bit the values the whole grid
+        gives (a shifted transform would round differently at cell edges).
     """
 
     data: np.ndarray
     transform: Affine
     crs: pyproj.CRS | None = None
     tags: dict[str, str] = field(default_factory=dict)
+    origin: tuple[int, int] = (0, 0)
 
     def __post_init__(self) -> None:
         self.data = np.asarray(self.data, dtype=np.float32)
@@ -74,25 +81,42 @@ class Raster:
     def bounds(self) -> tuple[float, float, float, float]:
         """(west, south, east, north) of the grid's outer edges."""
         rows, cols = self.shape
-        west, north = self.transform.c, self.transform.f
+        r0, c0 = self.origin
+        west = self.transform.c + c0 * self.transform.a
+        north = self.transform.f + r0 * self.transform.e
         return (west, north + rows * self.transform.e, west + cols * self.transform.a, north)
+
+    @property
+    def own_transform(self) -> Affine:
+        """The transform of ``data`` itself (the window's corner), for writing a window to a file."""
+        r0, c0 = self.origin
+        return self.transform @ Affine.translation(c0, r0)
 
     def like(self, data: np.ndarray, **tags: str) -> Raster:
         """A raster on the same grid and CRS holding ``data``."""
-        return Raster(data, self.transform, self.crs, dict(tags))
+        return Raster(data, self.transform, self.crs, dict(tags), self.origin)
+
+    def window(self, rows: slice, cols: slice) -> Raster:
+        """The cells ``data[rows, cols]`` (a view), as a window of this grid (see ``origin``)."""
+        r0, c0 = self.origin
+        rows, cols = (slice(*s.indices(n)[:2]) for s, n in zip((rows, cols), self.shape, strict=True))
+        return Raster(self.data[rows, cols], self.transform, self.crs, dict(self.tags),
+                      (r0 + rows.start, c0 + cols.start))
 
     def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
         """World x of each column (cols,) and y of each row (rows,) at cell centres."""
         rows, cols = self.shape
-        x = self.transform.c + (np.arange(cols) + 0.5) * self.transform.a
-        y = self.transform.f + (np.arange(rows) + 0.5) * self.transform.e
+        r0, c0 = self.origin
+        x = self.transform.c + (np.arange(c0, c0 + cols) + 0.5) * self.transform.a
+        y = self.transform.f + (np.arange(r0, r0 + rows) + 0.5) * self.transform.e
         return x, y
 
     def rowcol(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Integer (row, col) of the cells containing world points; may be out of range."""
         col = np.floor((np.asarray(x) - self.transform.c) / self.transform.a).astype(np.int64)
         row = np.floor((np.asarray(y) - self.transform.f) / self.transform.e).astype(np.int64)
-        return row, col
+        r0, c0 = self.origin
+        return row - r0, col - c0
 
     def sample(self, x: np.ndarray, y: np.ndarray, *, bilinear: bool = True) -> np.ndarray:
         """Values at world points, (n,) float64; NaN outside the grid or on nodata.
@@ -103,8 +127,9 @@ class Raster:
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         rows, cols = self.shape
-        fc = (x - self.transform.c) / self.transform.a - 0.5
-        fr = (y - self.transform.f) / self.transform.e - 0.5
+        # the whole grid's fractional index, then the window's (subtracting an integer is exact)
+        fc = (x - self.transform.c) / self.transform.a - 0.5 - self.origin[1]
+        fr = (y - self.transform.f) / self.transform.e - 0.5 - self.origin[0]
         if not bilinear:
             r, c = np.floor(fr + 0.5).astype(np.int64), np.floor(fc + 0.5).astype(np.int64)
             out = np.full(x.shape, np.nan)

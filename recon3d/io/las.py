@@ -17,7 +17,8 @@ from recon3d.io import atomic_path, require_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["las_date", "las_tiles", "las_wkt", "read_las", "read_las_tiles", "write_las"]
+__all__ = ["LasStreamWriter", "check_header", "las_date", "las_tiles", "las_wkt", "read_las", "resolve_crs", "same_crs",
+           "write_las"]
 
 #: Standard LAS dimensions carried through recon3d (extra-bytes dimensions are dropped).
 KEPT_DIMENSIONS = (
@@ -76,7 +77,7 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     names = set(las.point_format.dimension_names)
     attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
     file_crs = _header_crs(las, path)
-    resolved = _resolve_crs(file_crs, crs, path)
+    resolved = resolve_crs(file_crs, crs, path)
     if resolved is not None:
         check_area_of_use(resolved, xyz.min(axis=0), xyz.max(axis=0), source=str(path))
     return PointCloud(xyz, attributes, resolved)
@@ -120,79 +121,6 @@ def las_tiles(inputs: list[str | Path]) -> list[Path] | None:
     return sorted(set(found), key=lambda p: str(p)) or None
 
 
-def read_las_tiles(paths: list[Path], *, crs: pyproj.CRS | None = None) -> tuple[PointCloud, int]:
-    """Read the LAS/LAZ tiles of one survey as one cloud.
-
-    The tiles must share their CRS and point format; a tile whose header repeats
-    another's bounds and point count is the same tile given twice. Points two tiles
-    both hold (buffers around delivered tiles) are kept once. The cloud holds
-    the tiles in the order of their lower-left corners (then names), so the same set
-    of files gives the same cloud however it was named.
-
-    Raises
-    ------
-    InputError
-        A tile missing or damaged (named), different point formats, a duplicate tile,
-        or more points than memory holds.
-    CRSError
-        Tiles in different CRSs.
-    """
-    from recon3d.core.memory import require_memory
-
-    headers = {}
-    for path in paths:
-        path = require_file(path, "point cloud")
-        _check_point_count(path)
-        try:
-            with laspy.open(path) as reader:
-                h = reader.header
-                headers[path] = (tuple(np.round(h.mins, 3)), tuple(np.round(h.maxs, 3)), int(h.point_count),
-                                 int(h.point_format.id), int(h.point_format.size))
-        except Exception as exc:
-            raise InputError(f"{path}: cannot read LAS/LAZ header ({_short(exc)})") from None
-    order = sorted(headers, key=lambda p: (headers[p][0][:2], str(p)))
-    first = order[0]
-    for path in order[1:]:
-        if headers[path][3] != headers[first][3]:
-            raise InputError(f"{path}: point format {headers[path][3]}, but {first.name} has {headers[first][3]}; "
-                             "tiles of one survey share their point format")
-    seen: dict = {}
-    for path in order:
-        key = headers[path][:3]
-        if key in seen:
-            raise InputError(f"{path}: the same tile as {seen[key].name} (same bounds and point count); give it once")
-        seen[key] = path
-    total = sum(h[2] for h in headers.values())
-    require_memory(total * (headers[first][4] + 64), f"reading the {total} points of {len(order)} tiles",
-                   "give fewer tiles at a time", source=first.parent)
-    clouds = []
-    for path in order:
-        cloud = read_las(path, crs=crs)
-        if clouds and not _same_crs(cloud.crs, clouds[0].crs):
-            raise CRSError(f"{path}: CRS {crs_name(cloud.crs)}, but {first.name} is in {crs_name(clouds[0].crs)}; "
-                           "reproject the tiles to one CRS")
-        clouds.append(cloud)
-    names = [n for n in clouds[0].attributes if all(n in c.attributes for c in clouds)]
-    attributes = {n: np.concatenate([c.attributes[n] for c in clouds]) for n in names}
-    log.info("%d tiles, %d points", len(clouds), total)
-    cloud = PointCloud(np.concatenate([c.xyz for c in clouds]), attributes, clouds[0].crs)
-    first = _first_of_each(cloud)
-    return cloud[first], int((~first).sum())
-
-
-def _first_of_each(cloud: PointCloud) -> np.ndarray:
-    """(n,) bool: every point but the repeats of one already seen (same x, y, z and GPS
-    time), which tiles delivered with overlapping buffers hold twice."""
-    keys = [cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]]
-    if "gps_time" in cloud.attributes:
-        keys.append(cloud.attributes["gps_time"])
-    order = np.lexsort(keys[::-1])
-    rows = np.column_stack([k[order] for k in keys])
-    repeat = np.zeros(len(cloud), bool)
-    repeat[order[1:]] = (rows[1:] == rows[:-1]).all(axis=1)
-    return ~repeat
-
-
 #: Largest compression ratio believed of a LAZ file: a header claiming more points than
 #: this many times the file could hold is damaged (reading it would allocate them all).
 MAX_LAZ_RATIO = 30
@@ -220,6 +148,14 @@ def _check_point_count(path: Path) -> None:
     """Refuse a header whose point count the file cannot hold, or memory cannot, before reading."""
     from recon3d.core.memory import require_memory
 
+    count, size = check_header(path)
+    # the records, float64 coordinates and the kept attributes
+    require_memory(count * (size + 64), f"reading its {count} points", "cut the cloud into tiles", source=path)
+
+
+def check_header(path: Path) -> tuple[int, int]:
+    """Refuse a header whose record counts or point count the file cannot hold (laspy
+    would allocate them), before reading; its (point count, point record size)."""
     _check_record_counts(path)
     try:
         with laspy.open(path) as reader:
@@ -232,8 +168,7 @@ def _check_point_count(path: Path) -> None:
     room = data * (MAX_LAZ_RATIO if compressed else 1) // max(size, 1)
     if count > room:
         raise InputError(f"{path}: the header claims {count} points but the file holds at most {room}: truncated or damaged")
-    # the records, float64 coordinates and the kept attributes
-    require_memory(count * (size + 64), f"reading its {count} points", "cut the cloud into tiles", source=path)
+    return count, size
 
 
 def las_date(path: str | Path) -> str | None:
@@ -267,25 +202,87 @@ def write_las(cloud: PointCloud, path: str | Path) -> None:
 
     Point format 6 without colour, 7 with RGB, 8 with RGB and NIR.
     """
-    a = cloud.attributes
-    fmt = 8 if "nir" in a and "red" in a else 7 if "red" in a else 6
-    header = laspy.LasHeader(point_format=fmt, version="1.4")
-    mins = cloud.xyz.min(axis=0)
-    header.offsets = np.floor(mins)
-    header.scales = np.array([0.001, 0.001, 0.001])
-    if cloud.crs is not None:
-        header.vlrs.append(WktCoordinateSystemVlr(las_wkt(cloud.crs)))
-        header.global_encoding.wkt = True
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
-    names = set(las.point_format.dimension_names)
-    for name, values in a.items():
-        if name in names and name not in ("scan_angle_rank",):
-            las[name] = values
-    if "scan_angle_rank" in a and "scan_angle" not in a:
-        las["scan_angle"] = np.round(a["scan_angle_rank"].astype(np.float64) / 0.006).astype(np.int16)
-    with atomic_path(path) as tmp:
-        las.write(tmp)
+    with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.xyz.min(axis=0)) as writer:
+        writer.write(cloud)
+
+
+class LasStreamWriter:
+    """cloud.laz written a part at a time, in one pass, as :func:`write_las` writes it whole.
+
+    The points go out in blocks of :data:`WRITE_BLOCK` (a whole number of LAZ chunks),
+    so the file's bytes do not depend on how the parts were cut.
+
+    Parameters
+    ----------
+    path : path-like
+        Written under a temporary name, renamed on :meth:`close` (atomic).
+    crs : pyproj.CRS or None
+    names : list of str
+        The attributes every part carries (the point format follows from them).
+    mins : (3,) float
+        Lowest corner of all the points (the header's offsets).
+    """
+
+    def __init__(self, path: str | Path, crs: pyproj.CRS | None, names: list[str], mins: np.ndarray) -> None:
+        fmt = 8 if "nir" in names and "red" in names else 7 if "red" in names else 6
+        header = laspy.LasHeader(point_format=fmt, version="1.4")
+        header.offsets = np.floor(np.asarray(mins, np.float64))
+        header.scales = np.array([0.001, 0.001, 0.001])
+        if crs is not None:
+            header.vlrs.append(WktCoordinateSystemVlr(las_wkt(crs)))
+            header.global_encoding.wkt = True
+        self.header = header
+        self._atomic = atomic_path(path)
+        self._tmp = self._atomic.__enter__()
+        self._writer = laspy.open(self._tmp, mode="w", header=header)
+        self._parts: list[PointCloud] = []
+        self._pending = 0
+
+    def write(self, cloud: PointCloud) -> None:
+        """Append the points of ``cloud`` (in the order they are to be in the file)."""
+        self._parts.append(cloud)
+        self._pending += len(cloud)
+        while self._pending >= WRITE_BLOCK:
+            self._flush(WRITE_BLOCK)
+
+    def _flush(self, n: int) -> None:
+        xyz = np.concatenate([p.xyz for p in self._parts])
+        names = list(self._parts[0].attributes)
+        attrs = {k: np.concatenate([p.attributes[k] for p in self._parts]) for k in names}
+        block = PointCloud(xyz[:n], {k: v[:n] for k, v in attrs.items()})
+        rest = PointCloud(xyz[n:], {k: v[n:] for k, v in attrs.items()})
+        self._parts, self._pending = ([rest] if len(rest) else []), len(rest)
+        las = laspy.LasData(self.header)
+        las.x, las.y, las.z = block.xyz[:, 0], block.xyz[:, 1], block.xyz[:, 2]
+        dims = set(las.point_format.dimension_names)
+        a = block.attributes
+        for name, values in a.items():
+            if name in dims and name not in ("scan_angle_rank",):
+                las[name] = values
+        if "scan_angle_rank" in a and "scan_angle" not in a:
+            las["scan_angle"] = np.round(a["scan_angle_rank"].astype(np.float64) / 0.006).astype(np.int16)
+        self._writer.write_points(las.points)
+
+    def close(self) -> None:
+        """Write what is left and put the file in place."""
+        if self._pending:
+            self._flush(self._pending)
+        self._writer.close()
+        self._atomic.__exit__(None, None, None)
+
+    def __enter__(self) -> LasStreamWriter:
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self._writer.close()
+            self._atomic.__exit__(kind, value, tb)
+
+
+#: Points written at a time by :class:`LasStreamWriter`: ten LAZ chunks of 50,000.
+WRITE_BLOCK = 500_000
 
 
 def _header_crs(las: laspy.LasData, path: Path) -> pyproj.CRS | None:
@@ -296,12 +293,14 @@ def _header_crs(las: laspy.LasData, path: Path) -> pyproj.CRS | None:
         return None
 
 
-def _resolve_crs(file_crs: pyproj.CRS | None, user_crs: pyproj.CRS | None, path: Path) -> pyproj.CRS:
+def resolve_crs(file_crs: pyproj.CRS | None, user_crs: pyproj.CRS | None, path: Path) -> pyproj.CRS:
+    """The CRS of a file: its own, or the user's when it has none; an error when neither
+    exists or they differ."""
     if file_crs is None and user_crs is None:
         raise CRSError(f"{path}: the file has no CRS; give one with --crs (for example --crs EPSG:7415)")
     if file_crs is None:
         return user_crs
-    if user_crs is not None and not _same_crs(file_crs, user_crs):
+    if user_crs is not None and not same_crs(file_crs, user_crs):
         raise CRSError(
             f"{path}: the file's CRS is {crs_name(file_crs)} but --crs says {crs_name(user_crs)}; "
             "leave out --crs or reproject the file"
@@ -309,7 +308,7 @@ def _resolve_crs(file_crs: pyproj.CRS | None, user_crs: pyproj.CRS | None, path:
     return user_crs if user_crs is not None else file_crs
 
 
-def _same_crs(a: pyproj.CRS, b: pyproj.CRS) -> bool:
+def same_crs(a: pyproj.CRS, b: pyproj.CRS) -> bool:
     """Same CRS, or the same horizontal CRS when only one of them has a vertical part."""
     if a.equals(b, ignore_axis_order=True):
         return True

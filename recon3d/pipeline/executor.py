@@ -1,9 +1,12 @@
-"""Per-building work on local worker processes.
+"""Running a run's independent jobs: on local worker processes or a Dask cluster.
 
-Buildings are independent once the terrain and the footprints are known, so their
-solids can be built in parallel. Results come back in the order of the jobs and each
-job's result depends only on the job (Open3D's RANSAC is seeded per call and held to
-one thread), so the output is the same for any number of workers.
+Tiles (one pass at a time) and buildings are independent jobs. Results come back in
+the order of the jobs and each job's result depends only on the job (Open3D's RANSAC
+is seeded per call and held to one thread), so the output is the same for any number
+of workers and on any executor. A tile pass keeps each tile's result in the run's work
+folder, so a resumed run (``--resume``) does only the tiles that were not finished; a
+tile that fails is tried once more, and a run with tiles that failed twice stops with
+their list.
 
 The module also tells how many CPUs this process may use (affinity and container
 quota); its memory is :mod:`recon3d.core.memory`'s.
@@ -14,15 +17,23 @@ which may hold OpenMP or TBB thread pools, can deadlock a child.
 
 from __future__ import annotations
 
+import logging
 import math
 import multiprocessing as mp
 import os
+import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cgroup_cpus", "default_workers", "map_ordered"]
+import numpy as np
+
+from recon3d.errors import InputError, Recon3dError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Executor", "TileFailure", "cgroup_cpus", "connect", "default_workers", "map_ordered"]
 
 
 def default_workers() -> int:
@@ -76,18 +87,32 @@ def map_ordered(
     if workers <= 1:
         results = (func(job) for job in jobs)
         return _collect(results, done)
-    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
-    pool = ProcessPoolExecutor(workers, mp_context=mp.get_context(method))
+    pool = _pool(workers)
     try:
-        results = _collect(pool.map(func, jobs, chunksize=1), done)
-    except BaseException:  # Ctrl-C, SIGTERM, an error: stop now, not after every queued job
-        processes = list(getattr(pool, "_processes", {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.terminate()
-        raise
-    pool.shutdown()
+        results = _on_pool(pool, func, jobs, done)
+    finally:
+        pool.shutdown()
     return results
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
+    return ProcessPoolExecutor(workers, mp_context=mp.get_context(method))
+
+
+def _on_pool(pool: ProcessPoolExecutor, func, jobs: list, done) -> list:
+    try:
+        return _collect(pool.map(func, jobs, chunksize=1), done)
+    except BaseException:  # Ctrl-C, SIGTERM, an error: stop now, not after every queued job
+        _stop(pool)
+        raise
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    processes = list(getattr(pool, "_processes", {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
 
 
 def _collect(results: Iterable[Any], done: Callable[[int], None] | None) -> list[Any]:
@@ -97,3 +122,133 @@ def _collect(results: Iterable[Any], done: Callable[[int], None] | None) -> list
         if done is not None:
             done(len(out))
     return out
+
+
+class TileFailure(Recon3dError):
+    """Tiles failed twice; nothing is published."""
+
+
+def connect(scheduler: str) -> Any:
+    """A Dask distributed client: ``"local"`` starts a LocalCluster of this machine's
+    CPUs, anything else is a scheduler address (``tcp://host:8786``).
+
+    Raises
+    ------
+    InputError
+        Dask is not installed, or the scheduler does not answer within 10 s.
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--scheduler/--dask needs Dask: pip install 'dask[distributed]'") from None
+    if scheduler == "local":
+        cluster = LocalCluster(n_workers=default_workers(), threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)
+        return Client(cluster)
+    try:
+        return Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"--scheduler {scheduler}: no Dask scheduler answers there ({exc})") from None
+
+
+class Executor:
+    """Where a run's jobs go: this process, local worker processes, or a Dask cluster.
+
+    Parameters
+    ----------
+    workers : int
+        Local processes for tile passes and buildings (1: this process).
+    client : distributed.Client, optional
+        Run tile passes and buildings on this Dask cluster instead.
+    """
+
+    def __init__(self, workers: int = 1, client: Any = None) -> None:
+        self.workers = max(1, int(workers))
+        self.client = client
+        self._pool: ProcessPoolExecutor | None = None
+
+    def map(self, func: Callable[[Any], Any], jobs: list, *, done: Callable[[int], None] | None = None,
+            local: bool = False, workers: int | None = None) -> list:
+        """``[func(job) for job in jobs]`` on the executor (in this process when ``local``);
+        ``workers`` caps the local processes used for these jobs."""
+        workers = min(self.workers if workers is None else workers, len(jobs))
+        if local or not jobs or (self.client is None and workers <= 1):
+            return map_ordered(func, jobs, 1, done=done)
+        if self.client is not None:
+            futures = self.client.map(func, jobs, pure=False)
+            out = []
+            for k, future in enumerate(futures, 1):
+                out.append(future.result())
+                if done:
+                    done(k)
+            return out
+        if self._pool is None:  # one pool for the run: its processes start (and import) once
+            self._pool = _pool(self.workers)
+        try:
+            return _on_pool(self._pool, func, jobs, done)
+        except BaseException:
+            self._pool = None
+            raise
+
+    def close(self) -> None:
+        """Stop the worker processes (the Dask client is the caller's)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+    def tiles(self, name: str, func: Callable, spec: Any, tiles: list, args: list[tuple], *,
+              progress: Callable[[str], None] | None = None, local: bool = False) -> list[Path]:
+        """Run pass ``name`` (``func(spec, tile, *args)``) over every tile not done yet.
+
+        Returns
+        -------
+        list of Path
+            Each tile's saved result (``<tile folder>/<name>.npz``), in the order of ``tiles``.
+
+        Raises
+        ------
+        TileFailure
+            Tiles that failed twice, each with its reason.
+        """
+        paths = [spec.folder / t.name / f"{name}.npz" for t in tiles]
+        todo = [i for i, p in enumerate(paths) if not p.exists()]
+        jobs = [(func, name, spec, tiles[i], args[i]) for i in todo]
+        start, total = time.perf_counter(), len(jobs)
+
+        def report(k: int) -> None:
+            if progress:
+                rate = k / max(time.perf_counter() - start, 1e-9)
+                eta = (total - k) / rate if rate > 0 else 0.0
+                progress(f"{name} tile {k}/{total}, ETA {eta:.0f} s")
+
+        results = self.map(_tile_job, jobs, done=report, local=local)
+        failed = [(tiles[i], r) for i, r in zip(todo, results, strict=True) if isinstance(r, str)]
+        if failed:
+            listing = "; ".join(f"tile {t.name} (cells {t.rows.start}-{t.rows.stop}, {t.cols.start}-{t.cols.stop}): {why}"
+                                for t, why in failed[:10])
+            raise TileFailure(f"{len(failed)} of {len(tiles)} tiles failed twice in the {name} pass: {listing}")
+        return paths
+
+
+#: Times a tile is tried before the run stops with its reason.
+TILE_TRIES = 2
+
+
+def _tile_job(job: tuple) -> Path | str:
+    """One tile of one pass, its result saved beside the tile's others; the reason
+    (a string) when it failed :data:`TILE_TRIES` times."""
+    func, name, spec, tile, args = job
+    path = spec.folder / tile.name / f"{name}.npz"
+    reason = ""
+    for attempt in range(TILE_TRIES):
+        try:
+            result = func(spec, tile, *args)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{name}.{os.getpid()}.npz")
+            np.savez(tmp, **result)
+            os.replace(tmp, path)
+            return path
+        except (MemoryError, OSError, ValueError, RuntimeError, IndexError, KeyError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+            log.warning("tile %s, pass %s, attempt %d failed: %s", tile.name, name, attempt + 1, reason)
+    return reason

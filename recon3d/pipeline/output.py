@@ -25,7 +25,15 @@ from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_output", "publish", "remove_stale", "work_folder"]
+__all__ = ["FINGERPRINT", "WORK_CACHE", "adopt", "check_output", "count_results", "publish", "remove_stale",
+           "work_folder"]
+
+#: Sub-folder of a work folder holding what a resumed run can take up (the points in
+#: buckets, each tile's results); removed before the products are published.
+WORK_CACHE = "_work"
+
+#: File of :data:`WORK_CACHE` naming the inputs and settings its work belongs to.
+FINGERPRINT = "fingerprint.json"
 
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
@@ -89,6 +97,42 @@ def remove_stale(out: Path) -> list[str]:
         notes.append(f"removed {path.name}, left beside {out.name} by a run that was killed (process {pid})")
         log.info(notes[-1])
     return notes
+
+
+def adopt(out: Path, fingerprint: dict, cache: Path) -> bool:
+    """Take up the work of a killed or failed run of ``out`` (``--resume``): move its
+    :data:`WORK_CACHE` to ``cache``. False when there is none.
+
+    Raises
+    ------
+    InputError
+        The work left there belongs to other inputs or settings.
+    """
+    import json
+
+    if not out.parent.is_dir():
+        return False
+    for path in sorted(out.parent.glob(f".{out.name}.partial-*-*")):
+        pid = path.name[len(out.name) + 2 :].partition("-")[2].split("-", 1)[0]
+        old = path / WORK_CACHE
+        if path.is_symlink() or not pid.isdigit() or _alive(int(pid)) or not (old / FINGERPRINT).is_file():
+            continue
+        try:
+            theirs = json.loads((old / FINGERPRINT).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if theirs != json.loads(json.dumps(fingerprint, sort_keys=True)):
+            differ = sorted(k for k in set(theirs) | set(fingerprint) if theirs.get(k) != fingerprint.get(k))
+            raise InputError(f"{path}: the work left there is of a different run ({', '.join(differ)} differ); "
+                             "run without --resume to start afresh (it is then removed)")
+        old.rename(cache)
+        return True
+    return False
+
+
+def count_results(cache: Path) -> int:
+    """Tile results kept in a work cache."""
+    return sum(1 for _ in cache.glob("tiles-*/*/*.npz"))
 
 
 def _alive(pid: int) -> bool:

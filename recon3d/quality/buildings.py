@@ -14,6 +14,8 @@ All areas and distances are in CRS units unless ``units`` is given, then in metr
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import rasterio.features
 import shapely
@@ -24,7 +26,17 @@ from recon3d.buildings.vegetation import vegetation_index
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 
-__all__ = ["evaluate_against_classes", "evaluate_footprints", "vegetation_truth_proxy"]
+__all__ = [
+    "ReferenceGrid",
+    "evaluate_against_classes",
+    "evaluate_footprints",
+    "nearest_point",
+    "score_against_reference",
+    "surface_points",
+    "vegetation_as_building",
+    "vegetation_counts",
+    "vegetation_truth_proxy",
+]
 
 
 def _scores(tp: float, fp: float, fn: float) -> tuple[float | None, float | None, float | None]:
@@ -224,32 +236,106 @@ def evaluate_against_classes(
     u = units or Units()
     cell = cell if cell is not None else u.length(0.25)
     max_distance = max_distance if max_distance is not None else u.length(1.0)
-    min_object_area = min_object_area if min_object_area is not None else u.area(10.0)
     reference_classes = np.asarray(reference_classes)
-    idx = _surface_points(cloud)
+    idx = surface_points(cloud)
     if not len(idx):
         raise ValueError("evaluate_against_classes: the cloud has no surface point")
     xy = cloud.xyz[idx, :2]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    cols = max(1, int(np.ceil((hi[0] - lo[0]) / cell)))
-    rows = max(1, int(np.ceil((hi[1] - lo[1]) / cell)))
-    transform = Affine(cell, 0.0, lo[0], 0.0, -cell, lo[1] + rows * cell)
-    cx = lo[0] + (np.arange(cols) + 0.5) * cell
-    cy = lo[1] + rows * cell - (np.arange(rows) + 0.5) * cell
-    gx, gy = np.meshgrid(cx, cy)
-    dist, nearest = cKDTree(xy).query(np.column_stack([gx.ravel(), gy.ravel()]), distance_upper_bound=max_distance, workers=-1)
-    valid = np.isfinite(dist)
-    ref = np.zeros(rows * cols, bool)
+    grid = ReferenceGrid.over(xy.min(axis=0), xy.max(axis=0), cell)
+    gx, gy = grid.centres()
+    valid, nearest = nearest_point(xy, np.column_stack([gx.ravel(), gy.ravel()]), max_distance)
+    ref = np.zeros(valid.shape, bool)
     ref[valid] = reference_classes[idx[nearest[valid]]] == building_class
+    out = score_against_reference(polygons, grid, ref.reshape(grid.shape), valid.reshape(grid.shape),
+                                  min_object_area=min_object_area, units=u)
+    if point_classes is not None:
+        if vegetation_truth is None:
+            vegetation_truth = np.isin(reference_classes, (3, 4, 5))
+        out.update(vegetation_as_building(*vegetation_counts(vegetation_truth, point_classes)))
+    return out
+
+
+def surface_points(cloud: PointCloud) -> np.ndarray:
+    """Indices of the points that see the surface from above (first returns, no noise)."""
+    return _surface_points(cloud)
+
+
+@dataclass(frozen=True)
+class ReferenceGrid:
+    """The grid of :func:`evaluate_against_classes`: square cells from the lowest corner
+    of the surface points, over their extent."""
+
+    transform: Affine
+    shape: tuple[int, int]
+
+    @classmethod
+    def over(cls, lo, hi, cell: float) -> ReferenceGrid:
+        cols = max(1, int(np.ceil((hi[0] - lo[0]) / cell)))
+        rows = max(1, int(np.ceil((hi[1] - lo[1]) / cell)))
+        return cls(Affine(cell, 0.0, lo[0], 0.0, -cell, lo[1] + rows * cell), (rows, cols))
+
+    def centres(self, rows: slice = slice(None), cols: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """(r, c) x and y of the centres of ``[rows, cols]`` of the cells."""
+        t, (n, m) = self.transform, self.shape
+        cx = t.c + (np.arange(m)[cols] + 0.5) * t.a
+        cy = t.f + (np.arange(n)[rows] + 0.5) * t.e
+        return np.meshgrid(cx, cy)
+
+
+def nearest_point(xy: np.ndarray, centres: np.ndarray, max_distance: float,
+                  order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The point nearest each centre, within ``max_distance``; of two as near, the first in ``order``.
+
+    Returns
+    -------
+    valid : (m,) bool
+    nearest : (m,) int
+        Index into ``xy`` (meaningless where not valid).
+    """
+    if not len(xy):
+        return np.zeros(len(centres), bool), np.zeros(len(centres), np.int64)
+    k = min(2, len(xy))
+    dist, nb = cKDTree(xy).query(centres, k=k, distance_upper_bound=max_distance, workers=-1)
+    dist, nb = dist.reshape(len(centres), k), nb.reshape(len(centres), k)
+    valid = np.isfinite(dist[:, 0])
+    nearest = nb[:, 0].copy()
+    if k == 2:
+        rank = np.arange(len(xy)) if order is None else np.asarray(order)
+        tie = np.isfinite(dist[:, 1]) & (dist[:, 1] == dist[:, 0])
+        second = nb[tie, 1]
+        swap = rank[second] < rank[nearest[tie]]
+        nearest[np.flatnonzero(tie)[swap]] = second[swap]
+    return valid, np.where(valid, nearest, 0)
+
+
+def score_against_reference(
+    polygons: list[shapely.Polygon], grid: ReferenceGrid, ref: np.ndarray, valid: np.ndarray, *,
+    min_object_area: float | None = None, units: Units | None = None,
+) -> dict:
+    """The area and object scores of :func:`evaluate_against_classes` from its reference grid.
+
+    Parameters
+    ----------
+    polygons : list of shapely.Polygon
+    grid : ReferenceGrid
+    ref, valid : (rows, cols) bool
+        Cells whose nearest surface point is of the building class; cells with a surface
+        point near enough to judge.
+    """
+    u = units or Units()
+    min_object_area = min_object_area if min_object_area is not None else u.area(10.0)
+    rows, cols = grid.shape
+    cell = grid.transform.a
     polys = _polygons(polygons)
     if polys:
         det = rasterio.features.rasterize(
-            ((p, 1) for p in polys), out_shape=(rows, cols), transform=transform, fill=0, dtype="uint8"
-        ).ravel().astype(bool)
+            ((p, 1) for p in polys), out_shape=(rows, cols), transform=grid.transform, fill=0, dtype="uint8"
+        ).astype(bool)
     else:
-        det = np.zeros(rows * cols, bool)
+        det = np.zeros((rows, cols), bool)
     det &= valid
-    out_objects = _objects_from_grid(ref.reshape(rows, cols), transform, polys, min_object_area, u)
+    ref = ref & valid
+    out_objects = _objects_from_grid(ref, grid.transform, polys, min_object_area, u)
     tp = float(np.count_nonzero(det & ref))
     fp = float(np.count_nonzero(det & ~ref))
     fn = float(np.count_nonzero(~det & ref))
@@ -265,15 +351,20 @@ def evaluate_against_classes(
         "cell": cell,
     }
     out.update(out_objects)
-    if point_classes is not None:
-        if vegetation_truth is None:
-            vegetation_truth = np.isin(reference_classes, (3, 4, 5))
-        veg = np.asarray(vegetation_truth, bool)
-        out["vegetation_points"] = int(veg.sum())
-        out["vegetation_as_building_percent"] = (
-            round(100.0 * float(np.mean(np.asarray(point_classes)[veg] == ASPRS.BUILDING)), 3) if veg.any() else None
-        )
     return out
+
+
+def vegetation_counts(vegetation_truth: np.ndarray, point_classes: np.ndarray) -> tuple[int, int]:
+    """(vegetation points, those of them labelled building): summed over tiles for
+    :func:`vegetation_as_building`."""
+    veg = np.asarray(vegetation_truth, bool)
+    return int(veg.sum()), int(np.count_nonzero(np.asarray(point_classes)[veg] == ASPRS.BUILDING))
+
+
+def vegetation_as_building(vegetation: int, as_building: int) -> dict:
+    """``vegetation_points`` and ``vegetation_as_building_percent`` of :func:`evaluate_against_classes`."""
+    return {"vegetation_points": vegetation,
+            "vegetation_as_building_percent": round(100.0 * as_building / vegetation, 3) if vegetation else None}
 
 
 def _objects_from_grid(ref: np.ndarray, transform: Affine, polys: list, min_area: float, u: Units) -> dict:
@@ -296,6 +387,7 @@ def vegetation_truth_proxy(
     min_height: float,
     ndvi_min: float = 0.3,
     greenness_min: float = 0.05,
+    colour: str | None = "auto",
 ) -> np.ndarray:
     """(n,) bool: points taken as vegetation where the provider has no vegetation class.
 
@@ -314,6 +406,9 @@ def vegetation_truth_proxy(
         Height of each point above the terrain (CRS height units).
     min_height : float
         CRS height units.
+    colour : str or None
+        The survey's colour index when ``cloud`` is a tile of it
+        (:func:`~recon3d.buildings.vegetation.colour_kind`); "auto" asks the cloud.
     """
     c = np.asarray(reference_classes)
     a = cloud.attributes
@@ -322,7 +417,7 @@ def vegetation_truth_proxy(
     cand = other & (np.nan_to_num(height, nan=-np.inf) >= min_height)
     if "number_of_returns" in a:
         cand &= np.asarray(a["number_of_returns"]) > 1
-    colour = vegetation_index(cloud)
+    colour = vegetation_index(cloud, colour)
     if colour is not None:
         index, kind = colour
         cand &= index > (ndvi_min if kind == "ndvi" else greenness_min)

@@ -12,10 +12,14 @@ from recon3d.io.checkpoints import CheckPoints
 
 __all__ = [
     "against_checkpoints",
-    "against_raster",
     "against_points",
+    "against_raster",
     "building_coverage",
+    "coverage_counts",
+    "coverage_scores",
     "evaluate_ground",
+    "filter_counts",
+    "filter_scores",
     "ground_filter_errors",
     "landmark_height",
 ]
@@ -63,13 +67,21 @@ def ground_filter_errors(is_ground: np.ndarray, reference_classes: np.ndarray) -
     unclassified and other classes are left out. Type I: ground rejected; Type II:
     object accepted as ground; total: all misclassified; Cohen's kappa.
     """
+    return filter_scores(filter_counts(is_ground, reference_classes))
+
+
+def filter_counts(is_ground: np.ndarray, reference_classes: np.ndarray) -> np.ndarray:
+    """(5,) int64 counts of :func:`ground_filter_errors` (summed over tiles): provider
+    ground kept and rejected, objects accepted and rejected, and all points."""
     ref_ground = reference_classes == ASPRS.GROUND
     ref_object = np.isin(reference_classes, (3, 4, 5, 6))
-    scored = ref_ground | ref_object
-    a = int(np.sum(ref_ground & is_ground))
-    b = int(np.sum(ref_ground & ~is_ground))
-    c = int(np.sum(ref_object & is_ground))
-    d = int(np.sum(ref_object & ~is_ground))
+    return np.array([np.sum(ref_ground & is_ground), np.sum(ref_ground & ~is_ground), np.sum(ref_object & is_ground),
+                     np.sum(ref_object & ~is_ground), len(reference_classes)], np.int64)
+
+
+def filter_scores(counts: np.ndarray) -> dict:
+    """:func:`ground_filter_errors`'s figures from :func:`filter_counts`."""
+    a, b, c, d, points = (int(v) for v in counts)
     n = a + b + c + d
     if n == 0:
         return {"n": 0}
@@ -81,7 +93,7 @@ def ground_filter_errors(is_ground: np.ndarray, reference_classes: np.ndarray) -
         "type_ii_percent": 100.0 * c / max(c + d, 1),
         "total_percent": 100.0 * (b + c) / n,
         "kappa": (po - pe) / (1 - pe) if pe < 1 else 1.0,
-        "scored_share_percent": 100.0 * float(np.mean(scored)),
+        "scored_share_percent": 100.0 * (n / points),
         # without objects (a provider classifying ground only) Type II and kappa do not apply
         "reference_ground": a + b,
         "reference_objects": c + d,
@@ -95,16 +107,30 @@ def building_coverage(cloud: PointCloud, reference_classes: np.ndarray, labels: 
     correctness: share of points inside footprints, and not ground, that the
     provider calls building.
     """
+    return coverage_scores(coverage_counts(cloud, reference_classes, labels, grid))
+
+
+def coverage_counts(cloud: PointCloud, reference_classes: np.ndarray, labels: np.ndarray, grid: Raster) -> np.ndarray:
+    """(4,) int64 counts of :func:`building_coverage` (summed over tiles): provider building
+    points, those inside a footprint, points inside a footprint and not ground, those the
+    provider calls building."""
     row, col = grid.rowcol(cloud.xyz[:, 0], cloud.xyz[:, 1])
     ok = (row >= 0) & (row < grid.shape[0]) & (col >= 0) & (col < grid.shape[1])
     inside = np.zeros(len(cloud), bool)
     inside[ok] = labels[row[ok], col[ok]] > 0
     ref_building = reference_classes == ASPRS.BUILDING
     above = inside & (reference_classes != ASPRS.GROUND)
+    return np.array([ref_building.sum(), (inside & ref_building).sum(), above.sum(), (above & ref_building).sum()],
+                    np.int64)
+
+
+def coverage_scores(counts: np.ndarray) -> dict:
+    """:func:`building_coverage`'s figures from :func:`coverage_counts`."""
+    ref, found, above, right = (int(v) for v in counts)
     return {
-        "reference_building_points": int(ref_building.sum()),
-        "completeness_percent": 100.0 * float(np.mean(inside[ref_building])) if ref_building.any() else None,
-        "correctness_percent": 100.0 * float(np.mean(ref_building[above])) if above.any() else None,
+        "reference_building_points": ref,
+        "completeness_percent": 100.0 * (found / ref) if ref else None,
+        "correctness_percent": 100.0 * (right / above) if above else None,
     }
 
 

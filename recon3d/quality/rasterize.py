@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "render", "surface_at"]
+__all__ = ["model_dsm", "ray_top", "render", "surface_at"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -55,29 +55,45 @@ def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int
     return dtm.like(out, product="model DSM", method=method), cover
 
 
-def surface_at(city: CityModel, x: np.ndarray, y: np.ndarray, dtm: Raster, *, lod: str | None = None) -> np.ndarray:
+def surface_at(
+    city: CityModel, x: np.ndarray, y: np.ndarray, dtm: Raster, *, lod: str | None = None, top: float | None = None
+) -> np.ndarray:
     """(n,) height of the model's surface at world positions: the highest solid
     above each (x, y), or the DTM (bilinear) where no solid stands.
 
     Sampled at a cloud's own points and gridded the way the DSM is, this is the DSM a
     scan of the model would give: the like-for-like counterpart of the measured DSM.
+    ``top`` (:func:`ray_top`) is the local height the rays start from; a tile that
+    holds some of a city's buildings passes the whole city's, so that its heights are
+    the ones the whole city gives to the last bit.
     """
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    z = _Scene(city, lod).highest(x, y)
+    z = _Scene(city, lod, top).highest(x, y)
     return np.where(np.isfinite(z), z, dtm.sample(x, y, bilinear=True))
+
+
+def ray_top(city: CityModel, lod: str | None = None) -> float:
+    """Local height (the city's frame) the vertical rays start from: 10 above the highest solid."""
+    tops = [float(m.vertices[:, 2].max()) for m in _meshes(city, lod) if len(m.vertices)]
+    return max(tops, default=0.0) + 10.0
+
+
+def _meshes(city: CityModel, lod: str | None) -> list:
+    meshes = []
+    for b in city:
+        key = lod if lod in b.solids else max(b.solids, default=None, key=float)
+        if key is not None:
+            meshes.append(b.solids[key].to_trimesh())
+    return meshes
 
 
 class _Scene:
     """The solids of one LoD per building in an Open3D ray-casting scene (local frame)."""
 
-    def __init__(self, city: CityModel, lod: str | None) -> None:
+    def __init__(self, city: CityModel, lod: str | None, top: float | None = None) -> None:
         import open3d as o3d
 
-        meshes = []
-        for b in city:
-            key = lod if lod in b.solids else max(b.solids, default=None, key=float)
-            if key is not None:
-                meshes.append(b.solids[key].to_trimesh())
+        meshes = _meshes(city, lod)
         self.scene = None
         if not meshes:
             return
@@ -89,7 +105,7 @@ class _Scene:
             o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32))
         )
         self.origin = np.asarray(city.frame.origin, np.float64)
-        self.top = float(vertices[:, 2].max()) + 10.0
+        self.top = float(vertices[:, 2].max()) + 10.0 if top is None else float(top)
 
     def highest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(n,) world height of the first hit of a vertical ray from above, -inf where none."""

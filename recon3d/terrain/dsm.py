@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -15,9 +16,10 @@ from recon3d.core.raster import Raster, grid_for_bounds
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "SpacingGrid",
+    "cell_index",
     "choose_resolution",
     "fill_small_holes",
-    "cell_index",
     "grid_points",
     "grid_stereo",
     "make_dsm",
@@ -40,25 +42,50 @@ def point_spacing(xy: np.ndarray) -> float:
     ----------
     xy : (n, 2) float
     """
-    n = len(xy)
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
-    extent = max(float(np.max(hi - lo)), 1e-9)
-    cell = extent / 64.0  # coarse enough that every covered cell holds points
-    i = _floor_index(xy[:, 0], lo[0], cell)
-    j = _floor_index(xy[:, 1], lo[1], cell)
-    nx, ny = int(i.max()) + 1, int(j.max()) + 1
-    i *= ny
-    i += j
-    covered = np.bincount(i, minlength=nx * ny).reshape(nx, ny) > 0
-    for _ in range(4):
-        occupied = int(np.count_nonzero(covered))
-        if n / occupied >= 16 or cell >= extent:
-            break
-        cell *= 2.0  # a cell twice as wide covers 2 x 2 of the finer cells
-        rows, cols = (covered.shape[0] + 1) // 2 * 2, (covered.shape[1] + 1) // 2 * 2
-        covered = np.pad(covered, ((0, rows - covered.shape[0]), (0, cols - covered.shape[1])))
-        covered = covered.reshape(rows // 2, 2, cols // 2, 2).any(axis=(1, 3))
-    return math.sqrt(occupied * cell * cell / n)
+    grid = SpacingGrid.over(xy.min(axis=0), xy.max(axis=0))
+    return grid.spacing(grid.occupancy(xy), len(xy))
+
+
+@dataclass(frozen=True)
+class SpacingGrid:
+    """The coarse grid of :func:`point_spacing` (64 cells across the longer side), which a
+    survey read in chunks fills chunk by chunk (:meth:`occupancy` of each, OR-ed)."""
+
+    lo: tuple[float, float]
+    cell: float
+    shape: tuple[int, int]  # (nx, ny)
+    extent: float
+
+    @classmethod
+    def over(cls, lo, hi) -> SpacingGrid:
+        """The grid over the box from ``lo`` to ``hi`` (x, y)."""
+        extent = max(float(np.max(np.asarray(hi[:2]) - np.asarray(lo[:2]))), 1e-9)
+        cell = extent / 64.0  # coarse enough that every covered cell holds points
+        nx = int(np.floor((hi[0] - lo[0]) / cell)) + 1
+        ny = int(np.floor((hi[1] - lo[1]) / cell)) + 1
+        return cls((float(lo[0]), float(lo[1])), cell, (nx, ny), extent)
+
+    def occupancy(self, xy: np.ndarray) -> np.ndarray:
+        """(nx, ny) bool: the cells holding at least one of the points (outliers clipped in)."""
+        nx, ny = self.shape
+        i = np.clip(_floor_index(xy[:, 0], self.lo[0], self.cell), 0, nx - 1)
+        j = np.clip(_floor_index(xy[:, 1], self.lo[1], self.cell), 0, ny - 1)
+        i *= ny
+        i += j
+        return np.bincount(i, minlength=nx * ny).reshape(nx, ny) > 0
+
+    def spacing(self, covered: np.ndarray, n: int) -> float:
+        """Mean point spacing of ``n`` points covering the cells ``covered``."""
+        cell = self.cell
+        for _ in range(4):
+            occupied = int(np.count_nonzero(covered))
+            if n / occupied >= 16 or cell >= self.extent:
+                break
+            cell *= 2.0  # a cell twice as wide covers 2 x 2 of the finer cells
+            rows, cols = (covered.shape[0] + 1) // 2 * 2, (covered.shape[1] + 1) // 2 * 2
+            covered = np.pad(covered, ((0, rows - covered.shape[0]), (0, cols - covered.shape[1])))
+            covered = covered.reshape(rows // 2, 2, cols // 2, 2).any(axis=(1, 3))
+        return math.sqrt(occupied * cell * cell / n)
 
 
 def choose_resolution(spacing: float, units: Units) -> tuple[float, str]:
@@ -77,7 +104,7 @@ def choose_resolution(spacing: float, units: Units) -> tuple[float, str]:
 
 
 def grid_points(
-    xyz: np.ndarray, transform, shape: tuple[int, int], *, reducer: str = "max"
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, reducer: str = "max", origin: tuple[int, int] = (0, 0)
 ) -> np.ndarray:
     """Reduce point heights per grid cell.
 
@@ -87,6 +114,9 @@ def grid_points(
     transform : affine.Affine
     shape : (rows, cols)
     reducer : {"max", "min", "mean", "count"}
+    origin : (row, col)
+        The grid is the window of ``transform``'s grid starting at this cell (see
+        :class:`~recon3d.core.raster.Raster`), so a tile's cells are those of the whole grid.
 
     Returns
     -------
@@ -94,7 +124,7 @@ def grid_points(
         NaN in cells without points (0 for "count").
     """
     rows, cols = shape
-    idx, ok = cell_index(xyz, transform, shape)
+    idx, ok = cell_index(xyz, transform, shape, origin=origin)
     z = xyz[:, 2]
     if ok is not None:
         idx, z = idx[ok], z[ok]
@@ -111,7 +141,9 @@ def grid_points(
     return out.reshape(shape)
 
 
-def cell_index(xyz: np.ndarray, transform, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray | None]:
+def cell_index(
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, origin: tuple[int, int] = (0, 0)
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Flat cell index (row * cols + col) of each point, and which points fall on the grid.
 
     Parameters
@@ -119,6 +151,8 @@ def cell_index(xyz: np.ndarray, transform, shape: tuple[int, int]) -> tuple[np.n
     xyz : (n, 2+) float
     transform : affine.Affine
     shape : (rows, cols)
+    origin : (row, col)
+        First cell of the window of ``transform``'s grid that ``shape`` spans.
 
     Returns
     -------
@@ -130,6 +164,9 @@ def cell_index(xyz: np.ndarray, transform, shape: tuple[int, int]) -> tuple[np.n
     rows, cols = shape
     col = _floor_index(xyz[:, 0], transform.c, transform.a)
     row = _floor_index(xyz[:, 1], transform.f, transform.e)
+    if origin != (0, 0):
+        row -= origin[0]
+        col -= origin[1]
     # negative indices wrap to huge unsigned ones: one comparison per axis tests both ends
     ok = (col.view(np.uint64) < cols) & (row.view(np.uint64) < rows)
     row *= cols
@@ -147,7 +184,7 @@ def _floor_index(v: np.ndarray, origin: float, step: float) -> np.ndarray:
 
 def grid_stereo(
     xyz: np.ndarray, transform, shape: tuple[int, int], *, observed: np.ndarray, source: np.ndarray | None = None,
-    per_source: str = "max",
+    per_source: str = "max", origin: tuple[int, int] = (0, 0),
 ) -> np.ndarray:
     """Highest point per cell from stereo: observations first, pairs outvoting each other.
 
@@ -170,6 +207,8 @@ def grid_stereo(
         building's edge stays on the roof), or the median of them (several points of one
         pair per cell, as satellite GSD against the cell size gives: the highest of
         noisy heights would stand a noise sigma too high).
+    origin : (row, col)
+        As in :func:`grid_points`.
 
     Returns
     -------
@@ -177,9 +216,9 @@ def grid_stereo(
         NaN in cells without points.
     """
     rows, cols = shape
-    out = grid_points(xyz, transform, shape, reducer="max")
-    col = np.floor((xyz[:, 0] - transform.c) / transform.a).astype(np.int64)
-    row = np.floor((xyz[:, 1] - transform.f) / transform.e).astype(np.int64)
+    out = grid_points(xyz, transform, shape, reducer="max", origin=origin)
+    col = _floor_index(xyz[:, 0], transform.c, transform.a) - origin[1]
+    row = _floor_index(xyz[:, 1], transform.f, transform.e) - origin[0]
     use = np.asarray(observed, bool) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
     cell = (row * cols + col)[use]
     src = np.zeros(len(cell), np.int64) if source is None else np.asarray(source, np.int64)[use]

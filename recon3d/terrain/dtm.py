@@ -14,7 +14,7 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["densify_lines", "fill_gaps", "fill_nearest", "make_dtm", "make_ndsm"]
+__all__ = ["densify_lines", "dtm_from_cells", "fill_gaps", "fill_nearest", "ground_cells", "make_dtm", "make_ndsm"]
 
 
 def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -238,14 +238,55 @@ def make_dtm(
 ) -> Raster:
     """Interpolate ground points on the grid of ``grid``.
 
-    The ground points are averaged per cell, which removes measurement noise and
-    bounds the work by the grid size; cells without ground (under buildings, water)
-    are interpolated linearly in the Delaunay triangulation of the surrounding ground
-    cells (:func:`fill_gaps`).
+    The ground points are averaged per cell (:func:`ground_cells`), which removes
+    measurement noise and bounds the work by the grid size; cells without ground (under
+    buildings, water) are interpolated (:func:`dtm_from_cells`). The pipeline averages
+    the cells tile by tile and interpolates once.
 
     Parameters
     ----------
     ground_xyz : (n, 3) float
+    grid : Raster
+        Any raster on the target grid (the DSM); only its transform and CRS are used.
+    noise, constraints
+        See :func:`dtm_from_cells`.
+
+    Raises
+    ------
+    InputError
+        When there are fewer than three ground points.
+    """
+    mean, count = ground_cells(ground_xyz, grid.transform, grid.shape)
+    return dtm_from_cells(mean, count, grid, noise=noise, constraints=constraints)
+
+
+def ground_cells(
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, origin: tuple[int, int] = (0, 0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean height and number of the ground points in each cell.
+
+    Returns
+    -------
+    mean : (rows, cols) float64
+        NaN where no point fell.
+    count : (rows, cols) float64
+    """
+    mean = grid_points(xyz, transform, shape, reducer="mean", origin=origin)
+    return mean, grid_points(xyz, transform, shape, reducer="count", origin=origin)
+
+
+def dtm_from_cells(
+    mean: np.ndarray, count: np.ndarray, grid: Raster, *, noise: float = 0.0, constraints: np.ndarray | None = None
+) -> Raster:
+    """The DTM from the per-cell means of the ground points.
+
+    Cells without ground (under buildings, water) are interpolated linearly in the
+    Delaunay triangulation of the surrounding ground cells (:func:`fill_gaps`).
+
+    Parameters
+    ----------
+    mean, count : (rows, cols) float
+        :func:`ground_cells` over the whole grid.
     grid : Raster
         Any raster on the target grid (the DSM); only its transform and CRS are used.
     noise : float
@@ -262,15 +303,15 @@ def make_dtm(
     InputError
         When there are fewer than three ground points.
     """
-    if len(ground_xyz) < 3:
+    n = int(count.sum())
+    if n < 3:
         raise InputError(
-            f"only {len(ground_xyz)} ground points were found; a DTM needs at least 3 "
-            "(is the input a rooftop-only crop?)"
+            f"only {n} ground points were found; a DTM needs at least 3 (is the input a rooftop-only crop?)"
         )
-    mean = grid_points(ground_xyz, grid.transform, grid.shape, reducer="mean")
+    mean = mean.copy()
     known = np.isfinite(mean)
     if noise > 0:
-        mean = _smooth_noise(mean, known, grid_points(ground_xyz, grid.transform, grid.shape, reducer="count"), noise)
+        mean = _smooth_noise(mean, known, count, noise)
     if constraints is not None and len(constraints):
         fixed = grid_points(constraints, grid.transform, grid.shape, reducer="mean")
         has = np.isfinite(fixed)

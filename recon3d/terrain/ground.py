@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from affine import Affine
 from scipy import ndimage
 
 from recon3d.config import GroundConfig
@@ -48,7 +49,22 @@ from recon3d.terrain.dtm import fill_gaps, fill_nearest
 
 log = logging.getLogger(__name__)
 
-__all__ = ["METHODS", "GroundResult", "MinimumSurface", "classify_ground"]
+__all__ = [
+    "METHODS",
+    "GroundResult",
+    "MinimumSurface",
+    "classify_ground",
+    "ground_tolerances",
+    "label_ground",
+    "lowest_points",
+    "minimum_surface",
+    "pick_method",
+    "quality_cut",
+    "surface_cell",
+    "surface_grid",
+    "terrain",
+    "terrain_gradient",
+]
 
 
 @dataclass
@@ -121,8 +137,13 @@ class MinimumSurface:
         return self.raster.like(fill_gaps(residual, ~objects & self.measured) + self.trend)
 
 
-def classify_ground(cloud: PointCloud, config: GroundConfig, units: Units, cell: float) -> GroundResult:
+def classify_ground(
+    cloud: PointCloud, config: GroundConfig, units: Units, cell: float, *, grid: tuple | None = None
+) -> GroundResult:
     """Label ground points with the method named in ``config``.
+
+    The whole cloud at once; the pipeline runs the same steps tile by tile
+    (:func:`lowest_points`, :func:`minimum_surface`, :func:`terrain`, :func:`label_ground`).
 
     Parameters
     ----------
@@ -132,6 +153,8 @@ def classify_ground(cloud: PointCloud, config: GroundConfig, units: Units, cell:
         Units of the cloud's CRS; metric parameters are converted with it.
     cell : float
         DSM cell size (CRS units); the minimum surface uses it or 1 m, whichever is coarser.
+    grid : (transform, shape), optional
+        The minimum surface's grid; by default :func:`surface_grid` over the cloud's bounds.
 
     Raises
     ------
@@ -145,51 +168,97 @@ def classify_ground(cloud: PointCloud, config: GroundConfig, units: Units, cell:
         return GroundResult(c == ASPRS.GROUND, params={"method": "provider"})
     if len(cloud) < 3:
         raise InputError(f"the point cloud has {len(cloud)} point(s); ground filtering needs at least 3")
-    method, why = _pick_method(cloud, config)
+    method, why = pick_method(config, "number_of_returns" in cloud.attributes)
     params: dict = {"method": {"value": method, "reason": why}}
-    xyz = _trusted_points(cloud, params)
-    surface = minimum_surface(xyz, cloud.bounds, config, units, cell, params)
-    terrain = METHODS[method](surface, units)
-    is_ground, for_dtm, tolerance_params = _points_near(cloud.xyz, terrain, surface, config, units)
+    gcell, why = surface_cell(config, units, cell)
+    params["cell"] = _chosen(gcell, why)
+    if grid is None:
+        grid = surface_grid(cloud.bounds, gcell)
+    cut = quality_cut(cloud.attributes.get("quality"))
+    if cut is not None:
+        params["quality_cut"] = _chosen(cut, QUALITY_CUT_REASON)
+    zmin = lowest_points(cloud, *grid, quality_cut=cut)
+    surface = minimum_surface(zmin, grid[0], config, units, params)
+    found = terrain(surface, method, units)
+    is_ground, for_dtm, tolerance_params = label_ground(cloud.xyz, found, config, units, noise=surface.noise)
     params.update(tolerance_params)
     log.info("%s: %d of %d points ground (%.1f %%)", method, is_ground.sum(), len(cloud), 100 * is_ground.mean())
-    return GroundResult(is_ground, for_dtm, params, terrain)
+    return GroundResult(is_ground, for_dtm, params, found)
 
 
-def _pick_method(cloud: PointCloud, config: GroundConfig) -> tuple[str, str]:
+def pick_method(config: GroundConfig, returns: bool) -> tuple[str, str]:
+    """The filter to run and why; ``returns``: the points carry return numbers (LiDAR)."""
     if config.method != "auto":
         return config.method, "config"
-    if "number_of_returns" in cloud.attributes:
+    if returns:
         return "smrf", "LiDAR (the points carry return numbers)"
     return "tophat", "no return numbers (stereo surface): top-hat criteria measured best on noisy, holed surfaces"
 
 
-def _trusted_points(cloud: PointCloud, params: dict) -> np.ndarray:
-    """Points allowed to shape the minimum surface: noise class and poor matches left out."""
+def surface_cell(config: GroundConfig, units: Units, dsm_cell: float) -> tuple[float, str]:
+    """Cell of the minimum surface (CRS units) and why."""
+    if config.cell:
+        return units.length(config.cell), "config"
+    return max(dsm_cell, units.length(1.0)), "1 m, or the DSM cell when coarser: finer minimum surfaces only add noise"
+
+
+def surface_grid(bounds: np.ndarray, cell: float) -> tuple[Affine, tuple[int, int]]:
+    """The minimum surface's grid over ``bounds`` ((2, 2+) lowest and highest corner):
+    cells of ``cell``, snapped to multiples of it (:func:`~recon3d.core.raster.grid_for_bounds`).
+
+    Returns
+    -------
+    transform : Affine
+    shape : (rows, cols)
+    """
+    lo, hi = bounds
+    return grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
+
+
+#: Why the stereo points of the worst matching scores do not shape the minimum surface.
+QUALITY_CUT_REASON = "stereo matching score: worst 10 % not used"
+
+
+def quality_cut(score: np.ndarray | None) -> float | None:
+    """The matching score (stereo ``quality``) below which a point is not trusted, None without scores."""
+    return None if score is None or not len(score) else float(np.percentile(score, 10))
+
+
+def lowest_points(
+    cloud: PointCloud, transform, shape: tuple[int, int], *, quality_cut: float | None = None,
+    origin: tuple[int, int] = (0, 0),
+) -> np.ndarray:
+    """(rows, cols) float64 lowest trusted point per cell of the minimum surface's grid, NaN where none.
+
+    Points classified noise and stereo points scoring below ``quality_cut`` are not trusted.
+    ``origin`` as in :func:`recon3d.terrain.dsm.grid_points`.
+    """
     keep = np.ones(len(cloud), bool)
     if cloud.classification is not None:
         keep &= cloud.classification != ASPRS.NOISE
     score = cloud.attributes.get("quality")
-    if score is not None:
-        cut = np.percentile(score, 10)
-        keep &= score >= cut
-        params["quality_cut"] = {"value": float(cut), "reason": "stereo matching score: worst 10 % not used"}
-    return cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
+    if score is not None and quality_cut is not None:
+        keep &= score >= quality_cut
+    xyz = cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
+    return grid_points(xyz, transform, shape, reducer="min", origin=origin)
 
 
 def minimum_surface(
-    xyz: np.ndarray, bounds: np.ndarray, config: GroundConfig, units: Units, dsm_cell: float, params: dict
+    zmin: np.ndarray, transform: Affine, config: GroundConfig, units: Units, params: dict
 ) -> MinimumSurface:
-    """Grid the lowest points and measure window, slope and noise on the result."""
-    if config.cell:
-        cell, why = units.length(config.cell), "config"
-    else:
-        cell = max(dsm_cell, units.length(1.0))
-        why = "1 m, or the DSM cell when coarser: finer minimum surfaces only add noise"
-    params["cell"] = _chosen(cell, why)
-    lo, hi = bounds
-    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
-    zmin = _drop_low_outliers(grid_points(xyz, transform, shape, reducer="min"), units)
+    """The minimum surface from the lowest points per cell, with window, slope and noise measured on it.
+
+    Parameters
+    ----------
+    zmin : (rows, cols) float64
+        Lowest trusted point per cell (:func:`lowest_points`), NaN where none.
+    transform : Affine
+        Its grid's.
+    params : dict
+        Filled with the parameters chosen (run.json's record).
+    """
+    cell = transform.a
+    zmin = _drop_low_outliers(np.asarray(zmin, np.float64), units)
     measured = np.isfinite(zmin)
     surface = fill_nearest(zmin)
 
@@ -214,6 +283,11 @@ def minimum_surface(
     noise = _noise(surface, measured)
     params["noise"] = _chosen(round(noise * units.vertical, 3), "NMAD of the minimum surface's second differences")
     return MinimumSurface(Raster(surface, transform), measured, window, slope, noise, trend)
+
+
+def terrain(surface: MinimumSurface, method: str, units: Units) -> Raster:
+    """The provisional terrain of ``method`` (:data:`METHODS`) on the minimum surface's grid."""
+    return METHODS[method](surface, units)
 
 
 # --------------------------------------------------------------------------- methods
@@ -300,21 +374,28 @@ METHODS: dict[str, Callable[[MinimumSurface, Units], Raster]] = {
 SAMPLE_CHUNK = 1 << 20
 
 
-def _points_near(
-    xyz: np.ndarray, terrain: Raster, s: MinimumSurface, config: GroundConfig, units: Units
+def label_ground(
+    xyz: np.ndarray, terrain: Raster, config: GroundConfig, units: Units, *, noise: float,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Ground points: within threshold + scalar x local slope x cell of the terrain.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+    terrain : Raster
+        The provisional terrain (:func:`terrain`), or a window of it around the points
+        (one cell wider than they reach, for the gradient).
+    config : GroundConfig
+    units : Units
+    noise : float
+        Height noise of the minimum surface (:class:`MinimumSurface`).
 
     Returns the ground mask, the mask of ground points within the DTM band (at most
     0.3 m, or four times the noise, above the terrain) and the parameters used.
     """
-    if config.threshold is not None:
-        threshold, why = units.height(config.threshold), "config"
-    else:
-        threshold = max(units.height(0.5), 3.0 * s.noise)
-        why = "0.5 m, or 3 x the measured noise when larger"
-    gy, gx = np.gradient(terrain.data.astype(np.float64), s.cell)
-    gradient = Raster(np.hypot(gx, gy), terrain.transform)
+    threshold, band, params = ground_tolerances(config, units, noise)
+    cell = terrain.resolution
+    gradient = terrain.like(terrain_gradient(terrain.data, cell))
     height = np.empty(len(xyz))
     for start in range(0, len(xyz), SAMPLE_CHUNK):  # bilinear sampling makes ~15 temporaries per point
         part = slice(start, start + SAMPLE_CHUNK)
@@ -322,19 +403,39 @@ def _points_near(
     off = np.abs(height)
     is_ground = off <= threshold
     # the slope term only decides the points between the bare threshold and the widest
-    # tolerance; sampling the gradient at those alone gives the same labels
-    widest = threshold + max(config.scalar, 0.0) * float(np.nanmax(gradient.data, initial=0.0)) * s.cell
+    # tolerance; sampling the gradient at those alone gives the same labels (on a window,
+    # its steepest cell is at least as steep as those of the points)
+    widest = threshold + max(config.scalar, 0.0) * float(np.nanmax(gradient.data, initial=0.0)) * cell
     undecided = np.flatnonzero(~is_ground & (off <= widest)) if config.scalar >= 0 else np.arange(len(xyz))
     g = gradient.sample(xyz[undecided, 0], xyz[undecided, 1], bilinear=False)
-    is_ground[undecided] = off[undecided] <= threshold + config.scalar * np.nan_to_num(g) * s.cell
-    band = max(units.height(0.3), 4.0 * s.noise)
+    is_ground[undecided] = off[undecided] <= threshold + config.scalar * np.nan_to_num(g) * cell
     for_dtm = is_ground & (height <= band)
-    return is_ground, for_dtm, {
+    return is_ground, for_dtm, params
+
+
+def ground_tolerances(config: GroundConfig, units: Units, noise: float) -> tuple[float, float, dict]:
+    """How far from the terrain a point is ground, and a ground point shapes the DTM
+    (:func:`label_ground`): the threshold and the band (CRS units), and their record for
+    run.json (``threshold``, ``scalar``, ``dtm_band``, metres)."""
+    if config.threshold is not None:
+        threshold, why = units.height(config.threshold), "config"
+    else:
+        threshold = max(units.height(0.5), 3.0 * noise)
+        why = "0.5 m, or 3 x the measured noise when larger"
+    band = max(units.height(0.3), 4.0 * noise)
+    return threshold, band, {
         "threshold": _chosen(round(threshold * units.vertical, 3), why),
         "scalar": config.scalar,
         "dtm_band": _chosen(round(band * units.vertical, 3), "0.3 m, or 4 x the noise when larger: "
                             "grass and low vegetation labelled ground must not lift the DTM"),
     }
+
+
+def terrain_gradient(z: np.ndarray, cell: float) -> np.ndarray:
+    """(rows, cols) float64 slope magnitude (rise over run) of a terrain grid; on a window
+    one cell wider than the cells it is read at, the same as on the whole grid."""
+    gy, gx = np.gradient(np.asarray(z, np.float64), cell)
+    return np.hypot(gx, gy)
 
 
 def _chosen(value, reason: str) -> dict:

@@ -1,0 +1,403 @@
+"""The per-point work of a run, one tile at a time.
+
+Each pass is a plain function of one tile: it reads the tile's points (its core, or
+its core and buffer) from the run's point store, computes what the stages need from
+them, and returns it as arrays: rasters on the tile's core cells (the pipeline puts
+them in place on the whole grid, where no other tile writes) and per-point values of
+the core points (kept in the tile's folder for the later passes). Rasters the pass
+reads come as windows of the whole grid (:class:`~recon3d.core.raster.Raster` with an
+``origin``), so a point's cell and every value sampled at it are those of the whole
+grid. The algorithms are the stage packages'; this module only cuts and joins.
+"""
+
+from __future__ import annotations
+
+from dataclasses import astuple, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+from recon3d.buildings import classes, vegetation
+from recon3d.buildings.detect import fine_surface
+from recon3d.config import PipelineConfig
+from recon3d.core.geo import Units
+from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.raster import Raster
+from recon3d.pipeline.points import CloudSummary, TilePoints, cell_rowcol
+from recon3d.pipeline.tiling import BLOCK, Tile, morton
+from recon3d.quality import buildings as building_quality
+from recon3d.quality import evaluate
+from recon3d.terrain import dsm as dsm_stage
+from recon3d.terrain import dtm as dtm_stage
+from recon3d.terrain import ground as ground_stage
+
+__all__ = ["Spec", "building_points", "finish", "ground", "load", "surface", "vegetation_decide",
+           "vegetation_features"]
+
+
+@dataclass(frozen=True)
+class Spec:
+    """What every tile of a run shares (sent to each worker with its tile).
+
+    Attributes
+    ----------
+    store : LasStore or MemoryStore
+    transform : Affine
+        The DSM grid's.
+    shape : (rows, cols)
+        The DSM grid's.
+    folder : Path
+        Where each tile keeps its per-point results (a folder per tile).
+    config : PipelineConfig
+    units : Units
+    summary : CloudSummary
+    stereo : {None, "frame", "satellite"}
+    """
+
+    store: Any
+    transform: Affine
+    shape: tuple[int, int]
+    folder: Path
+    config: PipelineConfig
+    units: Units
+    summary: CloudSummary
+    stereo: str | None = None
+
+    def core(self, tile: Tile) -> TilePoints:
+        return self.store.read(tile.rows, tile.cols, self.transform)
+
+    def window(self, tile: Tile, buffer: int) -> tuple[TilePoints, np.ndarray]:
+        """The points of the tile and its buffer, and which of them are the core's."""
+        rows, cols = tile.window(buffer, self.shape)
+        pts = self.store.read(rows, cols, self.transform)
+        return pts, pts.inside(tile.rows, tile.cols)
+
+    def grid(self, tile: Tile) -> Raster:
+        """An empty raster on the tile's core cells (a window of the DSM grid)."""
+        shape = (tile.rows.stop - tile.rows.start, tile.cols.stop - tile.cols.start)
+        return Raster(np.zeros(shape, np.float32), self.transform, self.store.summary.crs, {},
+                      (tile.rows.start, tile.cols.start))
+
+
+def load(spec: Spec, tile: Tile, name: str) -> dict[str, np.ndarray]:
+    """The saved result of pass ``name`` for ``tile``."""
+    with np.load(spec.folder / tile.name / f"{name}.npz") as data:
+        return {k: data[k] for k in data.files}
+
+
+def _args(grid: Raster) -> tuple:
+    return grid.transform, grid.shape, grid.origin
+
+
+def cover(window: Raster, transform: Affine, shape: tuple[int, int], margin: int = 1) -> tuple[slice, slice]:
+    """The cells of another grid (``transform``, ``shape``) under a window of the DSM
+    grid, ``margin`` cells wider, clipped to that grid."""
+    west, south, east, north = window.bounds
+    c0 = int(np.floor((west - transform.c) / transform.a)) - margin
+    c1 = int(np.floor((east - transform.c) / transform.a)) + 1 + margin
+    r0 = int(np.floor((north - transform.f) / transform.e)) - margin
+    r1 = int(np.floor((south - transform.f) / transform.e)) + 1 + margin
+    return slice(max(r0, 0), min(r1, shape[0])), slice(max(c0, 0), min(c1, shape[1]))
+
+
+# --------------------------------------------------------------------------- passes
+
+
+def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tuple[int, int]) -> dict:
+    """The tile's cells of the DSM before hole filling, its point counts and the lowest
+    points of the ground filter's minimum surface (on its own grid: ``zmin`` over the
+    window ``zmin_origin`` of it that the core covers, to be merged by minimum)."""
+    pts = spec.core(tile)
+    cloud, a = pts.cloud, pts.cloud.attributes
+    grid = spec.grid(tile)
+    T, shape, origin = _args(grid)
+    keep = dsm_stage.surface_points(cloud)
+    xyz = cloud.xyz[keep]
+    out: dict[str, Any] = {}
+    if spec.stereo and "observed" in a:
+        source = a.get("point_source_id")
+        out["dsm"] = dsm_stage.grid_stereo(
+            xyz, T, shape, observed=(a["observed"] > 0)[keep], source=None if source is None else source[keep],
+            per_source="median" if spec.stereo == "satellite" else "max", origin=origin,
+        )
+        out["observed"] = dsm_stage.grid_points(cloud.xyz[a["observed"] > 0], T, shape, reducer="count", origin=origin)
+        if "consistent" in a:
+            out["consistent"] = dsm_stage.grid_points(cloud.xyz[a["consistent"] > 0], T, shape, reducer="count",
+                                                      origin=origin)
+    else:
+        out["dsm"] = dsm_stage.grid_points(xyz, T, shape, reducer="max", origin=origin)
+    out["count"] = dsm_stage.grid_points(xyz, T, shape, reducer="count", origin=origin)
+    out["points"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin)
+    first = np.asarray(a["return_number"]) <= 1 if "return_number" in a else np.ones(len(cloud), bool)
+    out["first_returns"] = np.int64(first.sum())
+    rows, cols = cover(grid, ground_transform, ground_shape)
+    out["zmin_origin"] = np.array([rows.start, cols.start])
+    out["zmin"] = ground_stage.lowest_points(cloud, ground_transform, (rows.stop - rows.start, cols.stop - cols.start),
+                                             quality_cut=spec.summary.quality_cut, origin=(rows.start, cols.start))
+    seen = np.flatnonzero(first & keep)
+    xy = cloud.xyz[seen, :2]
+    out["surface_lo"] = xy.min(axis=0) if len(xy) else np.full(2, np.inf)
+    out["surface_hi"] = xy.max(axis=0) if len(xy) else np.full(2, -np.inf)
+    return out
+
+
+def ground(spec: Spec, tile: Tile, terrain: Raster | None, noise: float, method: str) -> dict:
+    """The tile's ground points (``terrain`` a window of the provisional terrain, None for
+    the provider's classes), and the mean height and count of those shaping the DTM per cell."""
+    pts = spec.core(tile)
+    cloud, a = pts.cloud, pts.cloud.attributes
+    if method == "provider":
+        is_ground = cloud.classification == ASPRS.GROUND
+        for_dtm = is_ground
+    else:
+        is_ground, for_dtm, _ = ground_stage.label_ground(cloud.xyz, terrain, spec.config.ground, spec.units,
+                                                          noise=noise)
+    shaping = for_dtm
+    if spec.stereo == "satellite" and "observed" in a:
+        shaping = shaping & (a["observed"] > 0)  # a filled-in disparity is no ground
+    grid = spec.grid(tile)
+    mean, count = dtm_stage.ground_cells(cloud.xyz[shaping], grid.transform, grid.shape, origin=grid.origin)
+    out = {"is_ground": is_ground, "for_dtm": for_dtm, "mean": mean, "count": count}
+    if spec.summary.provider_classes:
+        out["filter_counts"] = evaluate.filter_counts(is_ground, cloud.classification)
+    return out
+
+
+def vegetation_features(spec: Spec, tile: Tile, dtm: Raster, survey: vegetation.Survey, noise: float,
+                        radius: float, buffer: int) -> dict:
+    """Covariance features of the vegetation candidates of the tile and its buffer, and the
+    counts of multi-return echoes among the core's (summed into the survey's rules)."""
+    pts, core = spec.window(tile, buffer)
+    cfg = spec.config.buildings
+    cand = vegetation.vegetation_candidates(pts.cloud, dtm, cfg, spec.units, survey, radius=radius, order=pts.order)
+    counts = vegetation.return_counts(cand, cfg, spec.units, noise, which=core[cand.index])
+    out = {"index": cand.index, "roughness": cand.roughness, "scattering": cand.scattering,
+           "neighbours": cand.neighbours.astype(np.int32), "counts": np.array(astuple(counts), np.int64)}
+    if cand.multi is not None:
+        out["multi"] = cand.multi
+    if cand.colour is not None:
+        out["colour"] = cand.colour
+    return out
+
+
+def vegetation_decide(spec: Spec, tile: Tile, survey: vegetation.Survey, noise: float, buffer: int,
+                      plane_tolerance: float) -> dict:
+    """Which core points are vegetation, their roughness, and the cells' vegetation and
+    planar shares and highest first returns (the building detection's evidence)."""
+    pts, core = spec.window(tile, buffer)
+    f = load(spec, tile, "vegetation_features")
+    cand = vegetation.Candidates(f["index"], f["roughness"], f["scattering"], f["neighbours"].astype(np.int64),
+                                 f.get("multi"), f.get("colour"))
+    veg = np.zeros(len(pts), bool)
+    veg[cand.index] = vegetation.decide_vegetation(cand, spec.config.buildings, spec.units, survey, noise=noise)
+    rough = np.full(len(pts), np.nan)
+    rough[cand.index] = cand.roughness
+    own = pts.subset(core)
+    veg, rough = veg[core], rough[core]
+    grid = spec.grid(tile)
+    fine = fine_surface(own.cloud, grid, veg, order=own.order)
+    return {
+        "vegetation": veg, "roughness": rough,
+        "share": vegetation.vegetation_cells(own.cloud, grid, veg, share=True),
+        "planar": vegetation.planar_cells(own.cloud, grid, rough, plane_tolerance),
+        "fine_z": fine.z, "fine_vegetation": fine.vegetation,
+    }
+
+
+def building_points(spec: Spec, tile: Tile, boxes: np.ndarray, which: np.ndarray) -> dict:
+    """The core points that may lie on roofs (neither ground nor vegetation) inside each
+    building's bounding box: ``b<index>`` (k, 3) xyz and ``o<index>`` (k,) survey order.
+
+    Parameters
+    ----------
+    boxes : (m, 4) float
+        (xmin, ymin, xmax, ymax) of the buildings touching the tile.
+    which : (m,) int
+        Their indices among all buildings.
+    """
+    pts = spec.core(tile)
+    roof = ~load(spec, tile, "ground")["is_ground"] & ~load(spec, tile, "vegetation_decide")["vegetation"]
+    xyz, order = pts.cloud.xyz[roof], pts.order[roof]
+    out = {}
+    for (x0, y0, x1, y1), i in zip(boxes, which, strict=True):
+        inside = (xyz[:, 0] >= x0) & (xyz[:, 0] <= x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1)
+        if inside.any():
+            out[f"b{i}"], out[f"o{i}"] = xyz[inside], order[inside]
+    return out
+
+
+@dataclass(frozen=True)
+class Finish:
+    """The rasters and the model the last pass reads around a tile.
+
+    Attributes
+    ----------
+    labels, depth : (rows, cols) array
+        Windows (one cell wider than the core, the cells of ``dtm``) of the footprint
+        labels and the distance inside the footprints.
+    dtm, dsm : Raster
+        The same windows of the DTM and the DSM.
+    with_solid : (m + 1,) bool
+        Per label, whether its building has a solid.
+    roofs, model : CityModel or None
+        The buildings touching the tile: with an LoD2.2 solid; with any solid.
+    roofs_top, model_top : float
+        Where the rays start over the whole city (:func:`recon3d.quality.rasterize.ray_top`).
+    tolerance, plane_tolerance : float
+        Of :func:`recon3d.buildings.classes.point_classes`.
+    hidden_ground : bool
+        Stereo: DSM cells were lowered to the DTM; points above them are noise.
+    reference_grid : ReferenceGrid or None
+        The provider-class evaluation grid (with provider classes).
+    buffer : int
+        Cells of points read around the core for the evaluation grid.
+    """
+
+    labels: np.ndarray
+    depth: np.ndarray
+    dtm: Raster
+    dsm: Raster
+    with_solid: np.ndarray
+    roofs: Any
+    model: Any
+    roofs_top: float
+    model_top: float
+    tolerance: float
+    plane_tolerance: float
+    hidden_ground: bool
+    reference_grid: building_quality.ReferenceGrid | None
+    buffer: int
+
+
+def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
+    """The classes of the core points (cloud.laz's records of the tile, in file order),
+    the model scanned at them, and the counts and errors of the accuracy report."""
+    from recon3d.quality.rasterize import surface_at
+
+    u, cfg = spec.units, spec.config.buildings
+    pts, core = spec.window(tile, f.buffer) if f.reference_grid is not None else (spec.core(tile), None)
+    own = pts if core is None else pts.subset(core)
+    cloud, xyz = own.cloud, own.cloud.xyz
+    is_ground = load(spec, tile, "ground")["is_ground"]
+    decided = load(spec, tile, "vegetation_decide")
+    veg, rough = decided["vegetation"], decided["roughness"]
+    roof_surface = None
+    if f.roofs is not None:
+        row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])
+        inside = f.labels[row, col] > 0
+        roof_surface = np.full(len(xyz), np.nan)
+        if inside.any():
+            nowhere = f.dtm.like(np.full(f.dtm.shape, np.nan, np.float32))
+            roof_surface[inside] = surface_at(f.roofs, xyz[inside, 0], xyz[inside, 1], nowhere, lod="2.2",
+                                              top=f.roofs_top)
+    point_classes = classes.point_classes(
+        cloud, is_ground, f.labels, f.dtm, f.dtm, cfg, u, vegetation=veg, with_solid=f.with_solid,
+        roof_surface=roof_surface, roughness=rough, tolerance=f.tolerance, plane_tolerance=f.plane_tolerance,
+        depth=f.depth,
+    )
+    if f.hidden_ground:  # the guesses over hidden ground stay in the cloud, above the DSM that replaced them
+        above = xyz[:, 2] > f.dsm.sample(xyz[:, 0], xyz[:, 1], bilinear=False) + u.height(0.5)
+        point_classes[above] = ASPRS.NOISE
+    out: dict[str, Any] = {"classes": point_classes}
+    out["scan"] = _scan(spec, tile, own, f)
+    if spec.summary.provider_classes:
+        out.update(_provider_scores(spec, tile, pts, core, own, point_classes, f))
+    out.update(_records(own.cloud.with_attribute("classification", point_classes), spec, tile))
+    return out
+
+
+def _scan(spec: Spec, tile: Tile, own: TilePoints, f: Finish) -> np.ndarray:
+    """The tile's cells of the model scanned at the points: each point's height replaced by
+    the model's surface above it (the terrain beside the buildings), gridded like the DSM."""
+    from recon3d.quality.rasterize import surface_at
+
+    xyz, a = own.cloud.xyz, own.cloud.attributes
+    if f.model is None:
+        z = f.dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=True)
+    else:
+        z = surface_at(f.model, xyz[:, 0], xyz[:, 1], f.dtm, top=f.model_top)
+    scanned = PointCloud(np.column_stack([xyz[:, :2], z]), a, own.cloud.crs)[np.isfinite(z)]
+    grid = spec.grid(tile)
+    keep = dsm_stage.surface_points(scanned)
+    pts = scanned.xyz[keep]
+    if spec.stereo and "observed" in a:
+        sa = scanned.attributes
+        source = sa.get("point_source_id")
+        return dsm_stage.grid_stereo(pts, *_args(grid)[:2], observed=(sa["observed"] > 0)[keep],
+                                     source=None if source is None else source[keep],
+                                     per_source="median" if spec.stereo == "satellite" else "max", origin=grid.origin)
+    return dsm_stage.grid_points(pts, *_args(grid)[:2], reducer="max", origin=grid.origin)
+
+
+def _provider_scores(spec: Spec, tile: Tile, pts: TilePoints, core: np.ndarray, own: TilePoints,
+                     point_classes: np.ndarray, f: Finish) -> dict:
+    """The counts and errors of the report's comparisons with the provider's classes."""
+    u = spec.units
+    cloud = own.cloud
+    ref = cloud.classification
+    xyz = cloud.xyz
+    height = xyz[:, 2] - f.dtm.sample(xyz[:, 0], xyz[:, 1])
+    truth = building_quality.vegetation_truth_proxy(cloud, ref, height, min_height=u.height(2.5),
+                                                    colour=spec.summary.colour)
+    ground = ref == ASPRS.GROUND
+    out = {
+        "vegetation_counts": np.array(building_quality.vegetation_counts(truth, point_classes), np.int64),
+        "coverage_counts": evaluate.coverage_counts(cloud, ref, f.labels, f.dtm),
+        "ground_order": own.order[ground],
+        "ground_errors": f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2],
+    }
+    cells, valid, building = _reference_cells(spec, tile, pts, f.reference_grid)
+    out.update(reference_cells=cells, reference_valid=valid, reference_building=building)
+    return out
+
+
+#: Farthest a reference grid cell's point may lie (m), as in evaluate_against_classes.
+REFERENCE_DISTANCE = 1.0
+
+
+def _reference_cells(spec: Spec, tile: Tile, pts: TilePoints, grid: building_quality.ReferenceGrid):
+    """The cells of the provider-class evaluation grid whose centres lie in the tile's core:
+    flat indices, and whether a surface point lies near enough and is of the building class."""
+    T, (rows, cols) = grid.transform, grid.shape
+    west = spec.transform.c + tile.cols.start * spec.transform.a
+    east = spec.transform.c + tile.cols.stop * spec.transform.a
+    north = spec.transform.f + tile.rows.start * spec.transform.e
+    south = spec.transform.f + tile.rows.stop * spec.transform.e
+    c0 = max(int(np.floor((west - T.c) / T.a)) - 1, 0)
+    c1 = min(int(np.ceil((east - T.c) / T.a)) + 1, cols)
+    r0 = max(int(np.floor((north - T.f) / T.e)) - 1, 0)
+    r1 = min(int(np.ceil((south - T.f) / T.e)) + 1, rows)
+    if c1 <= c0 or r1 <= r0:
+        return np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, bool)
+    gx, gy = grid.centres(slice(r0, r1), slice(c0, c1))
+    centres = np.column_stack([gx.ravel(), gy.ravel()])
+    row, col = cell_rowcol(centres, spec.transform)
+    mine = (row >= tile.rows.start) & (row < tile.rows.stop) & (col >= tile.cols.start) & (col < tile.cols.stop)
+    rr, cc = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
+    cells = (rr.ravel() * cols + cc.ravel())[mine]
+    seen = building_quality.surface_points(pts.cloud)
+    valid, nearest = building_quality.nearest_point(
+        pts.cloud.xyz[seen, :2], centres[mine], spec.units.length(REFERENCE_DISTANCE), order=pts.order[seen])
+    building = np.zeros(len(cells), bool)
+    building[valid] = pts.cloud.classification[seen][nearest[valid]] == ASPRS.BUILDING
+    return cells, valid, building
+
+
+def _records(cloud: PointCloud, spec: Spec, tile: Tile) -> dict:
+    """The tile's points as cloud.laz holds them: in the order of their blocks' Morton
+    codes, then x, y, z, GPS time and intensity (the same for every tiling)."""
+    row, col = cell_rowcol(cloud.xyz, spec.transform)
+    a = cloud.attributes
+    keys = [a[k] for k in ("intensity", "gps_time") if k in a]
+    keys += [cloud.xyz[:, 2], cloud.xyz[:, 1], cloud.xyz[:, 0], morton(row // BLOCK, col // BLOCK)]
+    order = np.lexsort(keys)
+    out = {"xyz": cloud.xyz[order]}
+    out.update({f"a_{k}": np.asarray(v)[order] for k, v in a.items()})
+    return out
+
+
+def with_counts(survey: vegetation.Survey, counts: np.ndarray) -> vegetation.Survey:
+    """The survey's vegetation rules with the multi-return counts summed over the tiles."""
+    return replace(survey, counts=vegetation.ReturnCounts(*(int(v) for v in counts)))

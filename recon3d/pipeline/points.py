@@ -1,0 +1,516 @@
+"""Where a run's points come from: read a tile at a time, never all at once.
+
+A :class:`LasStore` reads LAS/LAZ files once, in chunks, and sorts their points into
+square buckets on disk (in the run's work folder), so a tile reads only the buckets it
+overlaps. A :class:`MemoryStore` holds a cloud already in memory (a stereo cloud, a
+PLY file). Both give every point its place in the survey (``order``: files in the
+order of their lower-left corners, then names, points in file order), and the
+figures the survey-wide rules need (:class:`CloudSummary`), so that a tile's points
+and their order are the same whatever the tiling.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyproj
+
+from recon3d.core.geo import check_area_of_use, crs_name
+from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.errors import CRSError, InputError
+from recon3d.terrain.dsm import SpacingGrid
+
+log = logging.getLogger(__name__)
+
+__all__ = ["GROSS_HEIGHT_ERROR", "CloudSummary", "LasStore", "MemoryStore", "TilePoints"]
+
+#: Metres from the cloud's median height beyond which a point is a gross error
+#: (no terrain or building spans 10 km vertically): dropped, with a warning.
+GROSS_HEIGHT_ERROR = 1e4
+
+#: Points read from a LAS/LAZ file at a time.
+CHUNK = 1_000_000
+
+#: Points a bucket holds about (its side is a power of two metres, 16 to 1024).
+BUCKET_POINTS = 250_000
+
+#: File of a bucket folder that says its store is complete (:meth:`LasStore.open`).
+STORE_FILE = "store.pickle"
+
+
+@dataclass
+class CloudSummary:
+    """What the whole survey says, read once: the survey-wide rules use it, not a tile.
+
+    Attributes
+    ----------
+    count : int
+        Points kept (repeats and gross height errors left out).
+    bounds : (2, 3) float
+        Lowest and highest corner of the kept points.
+    crs : pyproj.CRS
+    dtypes : dict of str to numpy dtype
+        The per-point attributes every point carries.
+    spacing : float
+        Mean point spacing (:func:`recon3d.terrain.dsm.point_spacing`'s measure).
+    returns : bool
+        Some points are echoes of multi-return pulses.
+    colour : str or None
+        The colour index the points support (see :func:`recon3d.buildings.vegetation.colour_kind`).
+    provider_classes : bool
+        The provider classified the points (at least 1 % ground, class 2).
+    quality_cut : float or None
+        Stereo matching score below which a point does not shape the minimum surface.
+    median_z : float
+        Median height (to the metre), the reference of the gross-error test.
+    gross : int
+        Points dropped as gross height errors.
+    repeats : int
+        Points two overlapping tiles both held, kept once.
+    ground_points : int
+        Points the provider classified ground (2).
+    all_observed : bool
+        Stereo: every point was matched (none filled in); True for other clouds.
+    """
+
+    count: int
+    bounds: np.ndarray
+    crs: pyproj.CRS | None
+    dtypes: dict[str, np.dtype]
+    spacing: float
+    returns: bool
+    colour: str | None
+    provider_classes: bool
+    quality_cut: float | None = None
+    median_z: float = 0.0
+    gross: int = 0
+    repeats: int = 0
+    ground_points: int = 0
+    all_observed: bool = True
+
+
+@dataclass
+class TilePoints:
+    """The points of one tile's window.
+
+    Attributes
+    ----------
+    cloud : PointCloud
+    order : (n,) int64
+        Each point's place in the survey; the points come in that order.
+    row, col : (n,) int64
+        Each point's cell in the whole DSM grid.
+    """
+
+    cloud: PointCloud
+    order: np.ndarray
+    row: np.ndarray
+    col: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def inside(self, rows: slice, cols: slice) -> np.ndarray:
+        """(n,) bool: the points whose cell lies in ``[rows, cols]`` of the DSM grid."""
+        return (self.row >= rows.start) & (self.row < rows.stop) & (self.col >= cols.start) & (self.col < cols.stop)
+
+    def subset(self, keep: np.ndarray) -> TilePoints:
+        return TilePoints(self.cloud[keep], self.order[keep], self.row[keep], self.col[keep])
+
+
+def cell_rowcol(xyz: np.ndarray, transform) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) int64 row and column of each point's cell in the grid of ``transform``."""
+    col = np.floor((xyz[:, 0] - transform.c) / transform.a).astype(np.int64)
+    row = np.floor((xyz[:, 1] - transform.f) / transform.e).astype(np.int64)
+    return row, col
+
+
+def _gross(z: np.ndarray, median: float, vertical: float) -> np.ndarray:
+    return np.abs(z - median) > GROSS_HEIGHT_ERROR / vertical
+
+
+def _summarise(
+    chunks: Callable[[], object], raw_lo: np.ndarray, raw_hi: np.ndarray, crs, dtypes: dict,
+    median: float, *, quality: np.ndarray | None = None,
+) -> CloudSummary:
+    """:class:`CloudSummary` of kept points streamed by ``chunks()`` (an iterable of clouds)."""
+    grid = SpacingGrid.over(raw_lo[:2], raw_hi[:2])
+    covered = np.zeros(grid.shape, bool)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    count = ground = 0
+    returns, nir, rgb, all_observed = False, False, False, True
+    for cloud in chunks():
+        if not len(cloud):
+            continue
+        xyz, a = cloud.xyz, cloud.attributes
+        count += len(cloud)
+        lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+        covered |= grid.occupancy(xyz[:, :2])
+        if "classification" in a:
+            ground += int(np.count_nonzero(a["classification"] == ASPRS.GROUND))
+        if "number_of_returns" in a:
+            returns = returns or bool(np.any(np.asarray(a["number_of_returns"]) > 1))
+        if "nir" in a:
+            nir = nir or bool(np.any(np.asarray(a["nir"]) > 0))
+        if "observed" in a:
+            all_observed = all_observed and bool(np.all(np.asarray(a["observed"]) > 0))
+        if {"red", "green", "blue"} <= set(a):
+            rgb = rgb or bool(np.any(np.asarray(a["red"], np.float64) + np.asarray(a["green"], np.float64)
+                                     + np.asarray(a["blue"], np.float64) > 0))
+    colour = None
+    if {"red", "green", "blue"} <= set(dtypes):
+        colour = "ndvi" if "nir" in dtypes and nir else "exg" if rgb else None
+    from recon3d.terrain.ground import quality_cut
+
+    return CloudSummary(
+        count=count, bounds=np.stack([lo, hi]), crs=crs, dtypes=dtypes,
+        spacing=grid.spacing(covered, count) if count else 0.0, returns=returns, colour=colour,
+        provider_classes="classification" in dtypes and count > 0 and ground / count >= 0.01,
+        quality_cut=quality_cut(quality), median_z=median, ground_points=ground, all_observed=all_observed,
+    )
+
+
+class MemoryStore:
+    """The points of a cloud held in memory (a stereo cloud, a PLY file).
+
+    Parameters
+    ----------
+    cloud : PointCloud
+    vertical : float
+        Metres per height unit of the cloud's CRS (for the gross-error test).
+    """
+
+    def __init__(self, cloud: PointCloud, *, vertical: float = 1.0) -> None:
+        z = cloud.xyz[:, 2]
+        median = float(np.median(z)) if len(z) else 0.0
+        gross = _gross(z, median, vertical)
+        raw_lo, raw_hi = cloud.bounds if len(cloud) else (np.zeros(3), np.zeros(3))
+        kept = cloud[~gross] if gross.any() else cloud
+        self.cloud = kept
+        self.order = np.flatnonzero(~gross) if gross.any() else np.arange(len(cloud))
+        dtypes = {k: np.asarray(v).dtype for k, v in cloud.attributes.items()}
+        self.summary = _summarise(lambda: [kept], raw_lo, raw_hi, cloud.crs, dtypes, median,
+                                  quality=kept.attributes.get("quality"))
+        self.summary.gross = int(gross.sum())
+        self._cells: tuple | None = None
+
+    def read(self, rows: slice, cols: slice, transform) -> TilePoints:
+        """The points whose DSM cell lies in ``[rows, cols]`` of the grid of ``transform``."""
+        if self._cells is None or self._cells[0] != transform:
+            self._cells = (transform, *cell_rowcol(self.cloud.xyz, transform))
+        _, row, col = self._cells
+        keep = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
+        if keep.all():
+            return TilePoints(self.cloud, self.order, row, col)
+        return TilePoints(self.cloud[keep], self.order[keep], row[keep], col[keep])
+
+    def chunks(self):
+        """The kept points, a part at a time (here all at once)."""
+        yield self.cloud
+
+
+@dataclass
+class LasFile:
+    """One input file, from its header."""
+
+    path: Path
+    mins: np.ndarray
+    maxs: np.ndarray
+    count: int
+    point_format: int
+    names: list[str]
+    crs: pyproj.CRS | None
+
+
+class LasStore:
+    """LAS/LAZ files read once into square buckets on disk, then a tile at a time.
+
+    Parameters
+    ----------
+    paths : list of Path
+        One or many files of one survey (same CRS and point format).
+    folder : Path
+        Where the buckets are written (the run's work folder); created if needed.
+    crs : pyproj.CRS, optional
+        For files without one.
+    progress : callable, optional
+        Called with (points read so far, points in all).
+
+    Raises
+    ------
+    InputError
+        A file missing, damaged or empty (named), tiles of different point formats, a
+        tile given twice.
+    CRSError
+        No CRS and none given, a conflicting one, or tiles in different CRSs.
+    """
+
+    def __init__(self, paths: list[Path], folder: Path, *, crs: pyproj.CRS | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> None:
+        from recon3d.io import las as las_io
+
+        self.folder = Path(folder)
+        files = [_header(Path(p), crs) for p in paths]
+        files.sort(key=lambda f: (tuple(np.round(f.mins[:2], 3)), str(f.path)))
+        _check_survey(files)
+        self.files = files
+        self.crs = files[0].crs
+        names = [n for n in las_io.KEPT_DIMENSIONS if all(n in f.names for f in files)]
+        total = sum(f.count for f in files)
+        lo = np.min([f.mins for f in files], axis=0)
+        hi = np.max([f.maxs for f in files], axis=0)
+        density = total / max(float(np.prod(hi[:2] - lo[:2])), 1.0)
+        self.bucket = float(2 ** int(np.clip(round(math.log2(math.sqrt(BUCKET_POINTS / max(density, 1e-9)))), 4, 10)))
+        self.folder.mkdir(parents=True, exist_ok=True)
+        dtypes, heights = self._bucket_files(files, names, total, progress)
+        self.dtype = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("order", "i8")]
+                              + [(n, dtypes[n]) for n in names])
+        median = _histogram_median(heights)
+        raw_lo, raw_hi = self._raw_bounds
+        vertical = _vertical(self.crs)
+        self._median, self._vertical = median, vertical
+        repeats = self._clean_buckets(median, vertical, dedupe=len(files) > 1)
+        self.summary = _summarise(self.chunks, raw_lo, raw_hi, self.crs, {n: dtypes[n] for n in names}, median)
+        self.summary.gross = self._gross
+        self.summary.repeats = repeats
+
+    @classmethod
+    def open(cls, paths: list[Path], folder: Path, *, crs: pyproj.CRS | None = None,
+             progress: Callable[[int, int], None] | None = None) -> LasStore:
+        """The store kept in ``folder`` by an earlier run (a resumed one), else a new one
+        (whatever a killed run left half written there is removed first)."""
+        import pickle
+        import shutil
+
+        folder = Path(folder)
+        kept = folder / STORE_FILE
+        if kept.is_file():
+            with open(kept, "rb") as f:
+                store = pickle.load(f)
+            store.folder = folder  # the work folder moves to the resumed run's
+            return store
+        shutil.rmtree(folder, ignore_errors=True)
+        store = cls(paths, folder, crs=crs, progress=progress)
+        tmp = folder / f".{STORE_FILE}"
+        with open(tmp, "wb") as f:
+            pickle.dump(store, f)
+        tmp.rename(kept)
+        return store
+
+    # ------------------------------------------------------------------ reading the files once
+
+    def _bucket_files(self, files, names, total, progress) -> tuple[dict, dict]:
+        import laspy
+
+        dtypes: dict = {}
+        heights: dict[int, int] = {}
+        raw_lo, raw_hi = np.full(3, np.inf), np.full(3, -np.inf)
+        done = base = 0
+        for f in files:
+            read = 0
+            try:
+                with laspy.open(f.path) as reader:
+                    for chunk in reader.chunk_iterator(CHUNK):
+                        xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64)
+                        if not np.isfinite(xyz).all():
+                            raise InputError(f"{f.path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points "
+                                             "have NaN or infinite coordinates")
+                        attrs = {n: np.asarray(chunk[n]) for n in names}
+                        for n, v in attrs.items():
+                            dtypes.setdefault(n, v.dtype)
+                        order = np.arange(base + read, base + read + len(xyz), dtype=np.int64)
+                        self._append(xyz, order, attrs)
+                        raw_lo, raw_hi = np.minimum(raw_lo, xyz.min(axis=0)), np.maximum(raw_hi, xyz.max(axis=0))
+                        keys, counts = np.unique(np.floor(xyz[:, 2]).astype(np.int64), return_counts=True)
+                        for k, c in zip(keys.tolist(), counts.tolist(), strict=True):
+                            heights[k] = heights.get(k, 0) + c
+                        read += len(xyz)
+                        if progress:
+                            progress(done + read, total)
+            except InputError:
+                raise
+            except Exception as exc:  # laspy and lazrs raise many kinds on a damaged file
+                raise InputError(f"{f.path}: cannot read LAS/LAZ ({_short(exc)})") from None
+            if read == 0:
+                raise InputError(f"{f.path}: the point cloud is empty (0 points)")
+            base += f.count
+            done += read
+        self._raw_bounds = (raw_lo, raw_hi)
+        return dtypes, heights
+
+    def _bucket_of(self, xyz: np.ndarray) -> np.ndarray:
+        b = self.bucket
+        bx = np.floor(xyz[:, 0] / b).astype(np.int64)
+        by = np.floor(xyz[:, 1] / b).astype(np.int64)
+        return np.column_stack([bx, by])
+
+    def _path(self, bx: int, by: int) -> Path:
+        return self.folder / f"{bx}_{by}.bin"
+
+    def _append(self, xyz: np.ndarray, order: np.ndarray, attrs: dict) -> None:
+        dtype = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("order", "i8")]
+                         + [(n, v.dtype) for n, v in attrs.items()])
+        rec = np.empty(len(xyz), dtype)
+        rec["x"], rec["y"], rec["z"], rec["order"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], order
+        for n, v in attrs.items():
+            rec[n] = v
+        keys = self._bucket_of(xyz)
+        uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+        sort = np.argsort(inverse.ravel(), kind="stable")
+        starts = np.searchsorted(inverse.ravel()[sort], np.arange(len(uniq) + 1))
+        for i, (bx, by) in enumerate(uniq.tolist()):
+            with open(self._path(bx, by), "ab") as f:
+                rec[sort[starts[i]:starts[i + 1]]].tofile(f)
+
+    def _buckets(self) -> list[Path]:
+        return sorted(self.folder.glob("*.bin"))
+
+    def _load(self, path: Path) -> np.ndarray:
+        return np.fromfile(path, dtype=self.dtype)
+
+    def _clean_buckets(self, median: float, vertical: float, *, dedupe: bool) -> int:
+        """Drop gross height errors and, for several files, the repeats of overlapping
+        tiles from every bucket (identical points share a bucket); the number of repeats."""
+        repeats = self._gross = 0
+        for path in self._buckets():
+            rec = self._load(path)
+            keep = ~_gross(rec["z"], median, vertical)
+            self._gross += int((~keep).sum())
+            if dedupe:
+                first = _first_of_each(rec)
+                repeats += int((keep & ~first).sum())
+                keep &= first
+            if not keep.all():
+                rec[keep].tofile(path)
+        return repeats
+
+    def chunks(self):
+        """The kept points, a bucket at a time."""
+        for path in self._buckets():
+            yield self._cloud(self._load(path))
+
+    def _cloud(self, rec: np.ndarray) -> PointCloud:
+        xyz = np.column_stack([rec["x"], rec["y"], rec["z"]])
+        names = [n for n in self.dtype.names if n not in ("x", "y", "z", "order")]
+        return PointCloud(xyz, {n: np.ascontiguousarray(rec[n]) for n in names}, self.crs)
+
+    # ------------------------------------------------------------------ reading tiles
+
+    def read(self, rows: slice, cols: slice, transform) -> TilePoints:
+        """The points whose DSM cell lies in ``[rows, cols]`` of the grid of ``transform``, in survey order."""
+        x0 = transform.c + cols.start * transform.a
+        x1 = transform.c + cols.stop * transform.a
+        y1 = transform.f + rows.start * transform.e
+        y0 = transform.f + rows.stop * transform.e
+        b = self.bucket
+        parts = []
+        for bx in range(math.floor(x0 / b) - 1, math.floor(x1 / b) + 1):
+            for by in range(math.floor(y0 / b) - 1, math.floor(y1 / b) + 1):
+                path = self._path(bx, by)
+                if path.exists():
+                    rec = self._load(path)
+                    row, col = cell_rowcol(np.column_stack([rec["x"], rec["y"]]), transform)
+                    keep = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
+                    if keep.any():
+                        parts.append((rec[keep], row[keep], col[keep]))
+        if not parts:
+            rec, row, col = np.zeros(0, self.dtype), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        else:
+            rec, row, col = (np.concatenate(p) for p in zip(*parts, strict=True))
+        sort = np.argsort(rec["order"], kind="stable")
+        rec, row, col = rec[sort], row[sort], col[sort]
+        return TilePoints(self._cloud(rec), np.ascontiguousarray(rec["order"]), row, col)
+
+    @property
+    def paths(self) -> list[Path]:
+        return [f.path for f in self.files]
+
+
+def _first_of_each(rec: np.ndarray) -> np.ndarray:
+    """(n,) bool: every record but the repeats (same x, y, z and GPS time) of one earlier in the survey."""
+    keys = [rec["x"], rec["y"], rec["z"]]
+    if "gps_time" in rec.dtype.names:
+        keys.append(rec["gps_time"])
+    order = np.lexsort([rec["order"], *keys[::-1]])  # by x, y, z, time, then survey order
+    rows = np.column_stack([k[order] for k in keys])
+    repeat = np.zeros(len(rec), bool)
+    repeat[order[1:]] = (rows[1:] == rows[:-1]).all(axis=1)
+    return ~repeat
+
+
+def _histogram_median(heights: dict[int, int]) -> float:
+    """The median height to the metre, from counts of points per whole metre."""
+    if not heights:
+        return 0.0
+    keys = np.array(sorted(heights))
+    counts = np.array([heights[k] for k in keys])
+    half = (counts.sum() + 1) // 2
+    return float(keys[np.searchsorted(np.cumsum(counts), half)]) + 0.5
+
+
+def _vertical(crs) -> float:
+    from recon3d.core.geo import crs_units
+
+    try:
+        return crs_units(crs).vertical
+    except Exception:  # crs_units reports a bad CRS later, with the file's name
+        return 1.0
+
+
+def _header(path: Path, crs: pyproj.CRS | None) -> LasFile:
+    """The header of one input file, checked."""
+    import laspy
+
+    from recon3d.io import las as las_io
+    from recon3d.io import require_file
+
+    path = require_file(path, "point cloud")
+    las_io.check_header(path)
+    try:
+        with laspy.open(path) as reader:
+            h = reader.header
+            try:
+                file_crs = h.parse_crs()
+            except Exception as exc:
+                log.warning("%s: CRS in the header cannot be parsed (%s); treating it as missing", path, _short(exc))
+                file_crs = None
+            info = LasFile(path, np.asarray(h.mins, np.float64), np.asarray(h.maxs, np.float64), int(h.point_count),
+                           int(h.point_format.id), list(h.point_format.dimension_names), None)
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"{path}: cannot read LAS/LAZ header ({_short(exc)})") from None
+    if info.count == 0:
+        raise InputError(f"{path}: the point cloud is empty (0 points)")
+    info.crs = las_io.resolve_crs(file_crs, crs, path)
+    check_area_of_use(info.crs, info.mins, info.maxs, source=str(path))
+    return info
+
+
+def _check_survey(files: list[LasFile]) -> None:
+    """Tiles of one survey: one point format, one CRS, no tile given twice."""
+    from recon3d.io.las import same_crs
+
+    first = files[0]
+    seen: dict = {}
+    for f in files:
+        if f.point_format != first.point_format:
+            raise InputError(f"{f.path}: point format {f.point_format}, but {first.path.name} has "
+                             f"{first.point_format}; tiles of one survey share their point format")
+        if not same_crs(f.crs, first.crs):
+            raise CRSError(f"{f.path}: CRS {crs_name(f.crs)}, but {first.path.name} is in {crs_name(first.crs)}; "
+                           "reproject the tiles to one CRS")
+        key = (tuple(np.round(f.mins, 3)), tuple(np.round(f.maxs, 3)), f.count)
+        if key in seen:
+            raise InputError(f"{f.path}: the same tile as {seen[key].name} (same bounds and point count); give it once")
+        seen[key] = f.path
+
+
+def _short(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:200] if text else type(exc).__name__

@@ -1,0 +1,193 @@
+"""Which DSM cells a stereo run's images show, and what a matcher left unseen.
+
+Plain functions of the DSM grid and the cameras: the area both images of a matched
+pair see (frame and satellite), the holes in it that the matching lost, how much of it
+the DSM fills, and the filled-in cells that both images would have seen at their
+height (hidden ground, lowered to the DTM).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyproj
+from scipy import ndimage
+
+from recon3d.core.geo import Units
+from recon3d.core.raster import Raster
+from recon3d.terrain.dsm import grid_points, seen_by_all
+
+__all__ = [
+    "COMMON_AREA_MARGIN_PX",
+    "MIN_COMMON_FILLED",
+    "common_area",
+    "common_area_fill",
+    "holes_both_saw",
+    "rpc_common_area",
+    "unseen_guesses",
+]
+
+#: Pixels along the image borders left out of the common area: their matches are the
+#: least sure, and a hole there is better left empty than filled from the wrong side.
+COMMON_AREA_MARGIN_PX = 2.0
+
+#: Least share (percent) of the area two images both see that a frame-stereo DSM must
+#: fill without a warning.
+MIN_COMMON_FILLED = 95.0
+
+
+def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, units: Units) -> np.ndarray:
+    """Frame stereo: (rows, cols) bool, the cells both images of a matched pair see.
+
+    A cell is in the common area when its centre lies inside both images of a pair that
+    was matched, :data:`COMMON_AREA_MARGIN_PX` or more from their borders (through the
+    lens, as the photos were taken), at its own height; without a height, the median.
+    A cell holding no matched point must also lie inside them at the height of the
+    highest surface within 10 m, so that ground beside a roof the image border cuts is
+    not taken for ground in view. (Asking it of every cell lost a third of the common
+    area of a wide-angle survey: near the borders, 12 m of height moves a point out of
+    the frame; a matched cell is in view whatever its neighbours.)
+
+    Parameters
+    ----------
+    scene : recon3d.io.colmap.Scene
+    pairs : list of dict
+        run.json's record of each matched pair (``images``: the two names).
+    dsm : Raster
+        The DSM before its holes are filled.
+    observed : (rows, cols) bool
+        Cells holding a matched (not filled-in) point.
+    units : Units
+    """
+    cameras = {c.name: c for c in scene.cameras}
+    xs, ys = dsm.cell_centers()
+    x, y = np.meshgrid(xs, ys)
+    finite = np.isfinite(dsm.data)
+    median = float(np.nanmedian(dsm.data)) if finite.any() else 0.0
+    own = np.where(finite, dsm.data, median)
+    size = 2 * int(np.ceil(units.length(10.0) / dsm.resolution)) + 1
+    high = ndimage.maximum_filter(np.where(finite, dsm.data, -np.inf), size=size)
+    high = np.where(np.isfinite(high), np.maximum(high, own), own)
+    observed = observed.ravel()
+    offset = np.asarray(scene.offset)
+    points = [np.column_stack([x.ravel(), y.ravel(), z.ravel()]) - offset for z in (own, high)]
+
+    def in_frame(cam, margin: float = COMMON_AREA_MARGIN_PX):
+        lo, hi = margin - 0.5, np.array([cam.width, cam.height]) - 0.5 - margin
+        inside = []
+        for local in points:
+            uv, depth = cam.project(local, distort=True)  # the photo as taken, lens and all
+            inside.append((depth > 0) & (uv >= lo).all(axis=1) & (uv <= hi).all(axis=1))
+        return inside[0] & (observed | inside[1])
+
+    frames = {name: in_frame(cam) for name, cam in cameras.items()}
+    common = np.zeros(len(points[0]), bool)
+    for record in pairs:
+        a, b = record["images"]
+        common |= frames[a] & frames[b]
+    return common.reshape(dsm.shape)
+
+
+def holes_both_saw(scene, pairs: list[dict], raw: Raster, area: np.ndarray, max_cells: int) -> np.ndarray:
+    """(rows, cols) bool: the empty regions of ``raw`` in ``area``, larger than
+    ``max_cells``, holding two or more of the model's sparse points that both images of
+    a matched pair observed.
+
+    Ground hidden from one image behind a building holds no such tie point (one image
+    cannot see it); an empty region that does is ground both images saw and the
+    matching lost, and it is left empty (and warned of) rather than filled from its rim.
+    """
+    names = [c.name for c in scene.cameras]
+    both = np.zeros(len(scene.sparse), bool)
+    for record in pairs:
+        a, b = (names.index(n) for n in record["images"])
+        both |= scene.seen[a] & scene.seen[b]
+    holes, n = ndimage.label(~np.isfinite(raw.data) & area)
+    if n == 0:
+        return np.zeros(area.shape, bool)
+    world = scene.sparse[both] + scene.offset
+    ties = grid_points(world, raw.transform, raw.shape, reducer="count")
+    per_hole = np.bincount(holes.ravel(), weights=np.nan_to_num(ties).ravel(), minlength=n + 1)
+    size = np.bincount(holes.ravel(), minlength=n + 1)
+    seen = (per_hole >= 2) & (size > max_cells)
+    seen[0] = False
+    return seen[holes]
+
+
+def rpc_common_area(cameras, relative_bias: tuple[float, float], dsm: Raster) -> np.ndarray:
+    """Satellite pair: (rows, cols) bool, the cells whose surface both images show.
+
+    Each cell centre, at its DSM height (the median where it has none), is projected
+    through both RPCs (the second with the relative bias removed by matching) and must
+    fall on a finite pixel of each image, :data:`COMMON_AREA_MARGIN_PX` or more from
+    its borders.
+    """
+    import rasterio
+
+    xs, ys = dsm.cell_centers()
+    x, y = np.meshgrid(xs, ys)
+    finite = np.isfinite(dsm.data)
+    h = np.where(finite, dsm.data, float(np.nanmedian(dsm.data)) if finite.any() else 0.0).ravel()
+    lon, lat = pyproj.Transformer.from_crs(dsm.crs, 4326, always_xy=True).transform(x.ravel(), y.ravel())
+    shift = np.asarray(relative_bias, float)
+    common = np.ones(h.shape, bool)
+    for cam, extra in zip(cameras, (np.zeros(2), shift), strict=True):
+        row, col = cam.project(lon, lat, h)
+        col, row = col + extra[0], row + extra[1]
+        m = COMMON_AREA_MARGIN_PX
+        inside = (col >= m - 0.5) & (col <= cam.width - 0.5 - m) & (row >= m - 0.5) & (row <= cam.height - 0.5 - m)
+        with rasterio.open(cam.image_path) as src:
+            nodata = ~src.read_masks(1).astype(bool)
+        r, c = np.clip(np.rint(row), 0, cam.height - 1).astype(np.int64), np.clip(np.rint(col), 0, cam.width - 1).astype(np.int64)
+        common &= inside & ~nodata[r, c]
+    return common.reshape(dsm.shape)
+
+
+def common_area_fill(common: np.ndarray, dsm: Raster, filled: np.ndarray, unobserved: np.ndarray | None,
+                     units: Units) -> dict:
+    """How much of the common area the DSM fills and observes (run.json's
+    ``stereo.common_area``); with ``empty_extent`` where it fills less than
+    :data:`MIN_COMMON_FILLED` percent."""
+    full = np.isfinite(dsm.data) & common
+    observed = full & ~filled & (~unobserved if unobserved is not None else True)
+    n = max(1, int(common.sum()))
+    area = {
+        "cells": int(common.sum()),
+        "area_m2": round(float(common.sum() * (dsm.resolution * units.horizontal) ** 2), 1),
+        "filled_percent": round(100.0 * float(full.sum()) / n, 2),
+        "observed_percent": round(100.0 * float(observed.sum()) / n, 2),
+    }
+    if area["filled_percent"] < MIN_COMMON_FILLED:
+        xs, ys = dsm.cell_centers()
+        rows, cols = np.nonzero(common & ~full)
+        x, y = xs[cols], ys[rows]
+        area["empty_extent"] = [float(x.min()), float(y.min()), float(x.max()), float(y.max())]
+        area["empty_cells"] = len(rows)
+    return area
+
+
+def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged: np.ndarray, *,
+                   tolerance: float, min_area: float) -> np.ndarray:
+    """(rows, cols) bool: stereo DSM cells filled in at a height where both images of a
+    matched pair would have seen them (and so matched them): hidden ground, to take the DTM.
+
+    Cells holding no matched point and no guess the images agree with (``unjudged``) are
+    judged, in regions of at least ``min_area``: the few cells the matcher misses on a
+    roof or in a crown are noise, not hidden ground.
+    """
+    cameras = {c.name: c for c in scene.cameras}
+    offset = np.asarray(scene.offset)
+    regions, n = ndimage.label(unjudged)
+    area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * dsm.resolution**2
+    judged = unjudged & (np.r_[0.0, area][regions] >= min_area)
+    seen = np.zeros(judged.shape, bool)
+    for record in pairs:
+        pair = [cameras[name] for name in record["images"]]
+
+        def in_frame(i, xyz, pair=pair):
+            uv, depth = pair[i].project(xyz - offset, distort=True)
+            w, h = pair[i].width, pair[i].height
+            return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+
+        centres = np.array([c.center for c in pair]) + offset
+        seen |= seen_by_all(dsm, judged & ~seen, centres, tolerance=tolerance, in_frame=in_frame)
+    return seen & (dsm.data > dtm.data + tolerance)
