@@ -498,6 +498,11 @@ BYTES_PER_POINT = 400
 #: Share of the memory available that the tiles of all workers may take.
 TILE_MEMORY_SHARE = 0.5
 
+#: Most points a work tile holds, buffer included, however much memory there is: a
+#: tile's work gains nothing from being larger, and smaller tiles keep every worker
+#: busy and the memory of a run the same whatever its area.
+TILE_POINTS = 1_500_000
+
 
 def plan(r: Run) -> None:
     """The product grid (cell size from the data), its work tiles and their buffers."""
@@ -534,7 +539,7 @@ def plan(r: Run) -> None:
                                    "reason": "farthest neighbour of the vegetation test: 8 m, or 20 point spacings"}
     density = s.summary.count / max(float(np.prod(hi[:2] - lo[:2])) / res**2, 1.0)
     workers = r.executor.workers if r.executor.client is None else 1
-    budget = TILE_MEMORY_SHARE * available_memory() / BYTES_PER_POINT / max(workers, 1)
+    budget = min(TILE_POINTS, TILE_MEMORY_SHARE * available_memory() / BYTES_PER_POINT / max(workers, 1))
     size = None
     if cfg.tiles.size is not None:
         size = max(1, int(round(u.length(cfg.tiles.size) / res)))

@@ -133,8 +133,8 @@ def plan_tiles(
     while side > BLOCK and (side + 2 * buffer) ** 2 * points_per_cell > budget:
         side //= 2
     if side == whole:
-        return TileGrid(shape, side, buffer), "one tile: the whole area fits the memory of one worker"
+        return TileGrid(shape, side, buffer), f"one tile: the whole area holds fewer than {budget:,.0f} points"
     return TileGrid(shape, side, buffer), (
         f"largest tile whose {(side + 2 * buffer) ** 2 * points_per_cell:,.0f} points (with the buffer) "
-        f"fit one worker's budget of {budget:,.0f}"
+        f"fit a tile's budget of {budget:,.0f} (the memory of one worker, at most 1.5 M)"
     )
