@@ -120,19 +120,39 @@ def nearest_neighbours(
     xyz: np.ndarray, k: int, *, radius: float = np.inf, order: np.ndarray | None = None, workers: int = -1
 ) -> np.ndarray:
     """(n, k) int64 indices of each point's k nearest points within ``radius`` (itself
-    included), nearest first, ties broken by ``order``; -1 where there are fewer."""
+    included), nearest first, ties broken by ``order``; -1 where there are fewer.
+
+    The k-d tree is asked for k + 1 neighbours; the rare points whose k-th and next
+    neighbours are as far are asked again for :data:`TIE_SLACK` more, so that which of
+    them is in does not depend on the tree's traversal.
+    """
     n = len(xyz)
-    q = min(k + TIE_SLACK, n)
-    dist, nb = cKDTree(xyz).query(xyz, k=q, distance_upper_bound=radius, workers=workers)
+    tree = cKDTree(xyz)
+    q = min(k + 1, n)
+    dist, nb = tree.query(xyz, k=q, distance_upper_bound=radius, workers=workers)
     dist, nb = dist.reshape(n, q), nb.reshape(n, q)
-    missing = nb >= n
-    nb[missing] = 0
-    rank = (np.arange(n) if order is None else np.asarray(order))[nb]
-    rank[missing] = np.iinfo(np.int64).max
-    pick = np.lexsort((rank, dist), axis=-1)[:, :k]  # by distance, then survey order
-    nb = np.take_along_axis(nb, pick, axis=1)
-    nb[np.take_along_axis(missing, pick, axis=1)] = -1
+    if q > k:
+        edge = np.flatnonzero(np.isfinite(dist[:, k]) & (dist[:, k] == dist[:, k - 1]))
+        dist, nb = dist[:, :k].copy(), nb[:, :k].copy()
+        if len(edge):
+            more = min(k + TIE_SLACK, n)
+            d2, n2 = tree.query(xyz[edge], k=more, distance_upper_bound=radius, workers=workers)
+            d2, n2 = _canonical(d2.reshape(len(edge), more), n2.reshape(len(edge), more), n, order)
+            dist[edge], nb[edge] = d2[:, :k], n2[:, :k]
+    tied = np.flatnonzero((np.isfinite(dist[:, 1:]) & (dist[:, 1:] == dist[:, :-1])).any(axis=1))
+    if len(tied):
+        dist[tied], nb[tied] = _canonical(dist[tied], nb[tied], n, order)
+    nb[~np.isfinite(dist)] = -1
     return nb
+
+
+def _canonical(dist: np.ndarray, nb: np.ndarray, n: int, order: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbours sorted by distance, then by survey order (missing ones, index n, last)."""
+    missing = nb >= n
+    rank = (np.arange(n) if order is None else np.asarray(order))[np.where(missing, 0, nb)]
+    rank[missing] = np.iinfo(np.int64).max
+    pick = np.lexsort((rank, dist), axis=-1)
+    return np.take_along_axis(dist, pick, axis=1), np.take_along_axis(nb, pick, axis=1)
 
 
 #: Points per block of the covariance features (memory: block x k x 3 doubles).

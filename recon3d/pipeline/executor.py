@@ -200,6 +200,9 @@ class Executor:
               progress: Callable[[str], None] | None = None, local: bool = False) -> list[Path]:
         """Run pass ``name`` (``func(spec, tile, *args)``) over every tile not done yet.
 
+        ``progress`` hears, after each tile, "<name> tile k/n, <rate> M points/s, ETA <s> s"
+        (the points counted as the survey's share of the tiles done).
+
         Returns
         -------
         list of Path
@@ -214,12 +217,13 @@ class Executor:
         todo = [i for i, p in enumerate(paths) if not p.exists()]
         jobs = [(func, name, spec, tiles[i], args[i]) for i in todo]
         start, total = time.perf_counter(), len(jobs)
+        points = spec.summary.count * total / max(len(tiles), 1)
 
         def report(k: int) -> None:
             if progress:
-                rate = k / max(time.perf_counter() - start, 1e-9)
-                eta = (total - k) / rate if rate > 0 else 0.0
-                progress(f"{name} tile {k}/{total}, ETA {eta:.0f} s")
+                elapsed = max(time.perf_counter() - start, 1e-9)
+                eta = (total - k) * elapsed / k
+                progress(f"{name} tile {k}/{total}, {points * k / total / elapsed / 1e6:.2f} M points/s, ETA {eta:.0f} s")
 
         results = self.map(_tile_job, jobs, done=report, local=local)
         failed = [(tiles[i], r) for i, r in zip(todo, results, strict=True) if isinstance(r, str)]

@@ -108,14 +108,14 @@ class Source:
         return self.summary.crs
 
 
-def read_points(inputs: Inputs, folder: Path, *, auto: dict, progress=None) -> Source:
+def read_points(inputs: Inputs, folder: Path, *, auto: dict, progress=None, executor=None) -> Source:
     """The points of a LAS/LAZ or PLY input (bucketed in ``folder`` for LAS/LAZ), checked."""
     suffix = inputs.input_path.suffix.lower()
     source = Source()
     if inputs.tile_paths or suffix in (".las", ".laz"):
         paths = inputs.tile_paths or [inputs.input_path]
         report = (lambda done, total: progress(f"{done / 1e6:.1f} of {total / 1e6:.1f} M points")) if progress else None
-        source.store = LasStore.open(paths, folder, crs=inputs.crs, progress=report)
+        source.store = LasStore.open(paths, folder, crs=inputs.crs, progress=report, executor=executor)
         dates = [d for d in map(las_date, paths) if d]
         if dates:
             source.reference_date = max(dates)

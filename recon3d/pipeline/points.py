@@ -134,44 +134,61 @@ def _gross(z: np.ndarray, median: float, vertical: float) -> np.ndarray:
     return np.abs(z - median) > GROSS_HEIGHT_ERROR / vertical
 
 
-def _summarise(
-    chunks: Callable[[], object], raw_lo: np.ndarray, raw_hi: np.ndarray, crs, dtypes: dict,
-    median: float, *, quality: np.ndarray | None = None,
-) -> CloudSummary:
-    """:class:`CloudSummary` of kept points streamed by ``chunks()`` (an iterable of clouds)."""
-    grid = SpacingGrid.over(raw_lo[:2], raw_hi[:2])
-    covered = np.zeros(grid.shape, bool)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    count = ground = 0
-    returns, nir, rgb, all_observed = False, False, False, True
-    for cloud in chunks():
-        if not len(cloud):
-            continue
+@dataclass
+class _Part:
+    """The summary figures of some of the kept points, merged with ``+`` into the survey's."""
+
+    count: int = 0
+    lo: np.ndarray = None  # type: ignore[assignment]
+    hi: np.ndarray = None  # type: ignore[assignment]
+    covered: np.ndarray | None = None
+    ground: int = 0
+    returns: bool = False
+    nir: bool = False
+    rgb: bool = False
+    all_observed: bool = True
+
+    @classmethod
+    def of(cls, cloud: PointCloud, grid: SpacingGrid) -> _Part:
         xyz, a = cloud.xyz, cloud.attributes
-        count += len(cloud)
-        lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
-        covered |= grid.occupancy(xyz[:, :2])
+        if not len(cloud):
+            return cls(0, np.full(3, np.inf), np.full(3, -np.inf), np.zeros(grid.shape, bool))
+        part = cls(len(cloud), xyz.min(axis=0), xyz.max(axis=0), grid.occupancy(xyz[:, :2]))
         if "classification" in a:
-            ground += int(np.count_nonzero(a["classification"] == ASPRS.GROUND))
+            part.ground = int(np.count_nonzero(a["classification"] == ASPRS.GROUND))
         if "number_of_returns" in a:
-            returns = returns or bool(np.any(np.asarray(a["number_of_returns"]) > 1))
+            part.returns = bool(np.any(np.asarray(a["number_of_returns"]) > 1))
         if "nir" in a:
-            nir = nir or bool(np.any(np.asarray(a["nir"]) > 0))
+            part.nir = bool(np.any(np.asarray(a["nir"]) > 0))
         if "observed" in a:
-            all_observed = all_observed and bool(np.all(np.asarray(a["observed"]) > 0))
+            part.all_observed = bool(np.all(np.asarray(a["observed"]) > 0))
         if {"red", "green", "blue"} <= set(a):
-            rgb = rgb or bool(np.any(np.asarray(a["red"], np.float64) + np.asarray(a["green"], np.float64)
-                                     + np.asarray(a["blue"], np.float64) > 0))
-    colour = None
-    if {"red", "green", "blue"} <= set(dtypes):
-        colour = "ndvi" if "nir" in dtypes and nir else "exg" if rgb else None
+            part.rgb = bool(np.any(np.asarray(a["red"], np.float64) + np.asarray(a["green"], np.float64)
+                                   + np.asarray(a["blue"], np.float64) > 0))
+        return part
+
+    def __add__(self, o: _Part) -> _Part:
+        return _Part(self.count + o.count, np.minimum(self.lo, o.lo), np.maximum(self.hi, o.hi), self.covered | o.covered,
+                     self.ground + o.ground, self.returns or o.returns, self.nir or o.nir, self.rgb or o.rgb,
+                     self.all_observed and o.all_observed)
+
+
+def _summary(parts: list[_Part], grid: SpacingGrid, crs, dtypes: dict, median: float, *,
+             quality: np.ndarray | None = None) -> CloudSummary:
+    """:class:`CloudSummary` of the kept points, from the figures of their parts."""
     from recon3d.terrain.ground import quality_cut
 
+    p = parts[0]
+    for more in parts[1:]:
+        p = p + more
+    colour = None
+    if {"red", "green", "blue"} <= set(dtypes):
+        colour = "ndvi" if "nir" in dtypes and p.nir else "exg" if p.rgb else None
     return CloudSummary(
-        count=count, bounds=np.stack([lo, hi]), crs=crs, dtypes=dtypes,
-        spacing=grid.spacing(covered, count) if count else 0.0, returns=returns, colour=colour,
-        provider_classes="classification" in dtypes and count > 0 and ground / count >= 0.01,
-        quality_cut=quality_cut(quality), median_z=median, ground_points=ground, all_observed=all_observed,
+        count=p.count, bounds=np.stack([p.lo, p.hi]), crs=crs, dtypes=dtypes,
+        spacing=grid.spacing(p.covered, p.count) if p.count else 0.0, returns=p.returns, colour=colour,
+        provider_classes="classification" in dtypes and p.count > 0 and p.ground / p.count >= 0.01,
+        quality_cut=quality_cut(quality), median_z=median, ground_points=p.ground, all_observed=p.all_observed,
     )
 
 
@@ -194,8 +211,9 @@ class MemoryStore:
         self.cloud = kept
         self.order = np.flatnonzero(~gross) if gross.any() else np.arange(len(cloud))
         dtypes = {k: np.asarray(v).dtype for k, v in cloud.attributes.items()}
-        self.summary = _summarise(lambda: [kept], raw_lo, raw_hi, cloud.crs, dtypes, median,
-                                  quality=kept.attributes.get("quality"))
+        grid = SpacingGrid.over(raw_lo[:2], raw_hi[:2])
+        self.summary = _summary([_Part.of(kept, grid)], grid, cloud.crs, dtypes, median,
+                                quality=kept.attributes.get("quality"))
         self.summary.gross = int(gross.sum())
         self._cells: tuple | None = None
 
@@ -251,9 +269,11 @@ class LasStore:
     """
 
     def __init__(self, paths: list[Path], folder: Path, *, crs: pyproj.CRS | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> None:
+                 progress: Callable[[int, int], None] | None = None, executor=None) -> None:
         from recon3d.io import las as las_io
+        from recon3d.pipeline.executor import Executor
 
+        executor = executor or Executor(1)
         self.folder = Path(folder)
         files = [_header(Path(p), crs) for p in paths]
         files.sort(key=lambda f: (tuple(np.round(f.mins[:2], 3)), str(f.path)))
@@ -267,21 +287,31 @@ class LasStore:
         density = total / max(float(np.prod(hi[:2] - lo[:2])), 1.0)
         self.bucket = float(2 ** int(np.clip(round(math.log2(math.sqrt(BUCKET_POINTS / max(density, 1e-9)))), 4, 10)))
         self.folder.mkdir(parents=True, exist_ok=True)
-        dtypes, heights = self._bucket_files(files, names, total, progress)
-        self.dtype = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("order", "i8")]
-                              + [(n, dtypes[n]) for n in names])
+        self.dtype = _record_dtype(files[0].path, names)
+        bases = np.cumsum([0] + [f.count for f in files[:-1]])
+        jobs = [(f.path, i, int(base), names, self.dtype, self.bucket, self.folder)
+                for i, (f, base) in enumerate(zip(files, bases, strict=True))]
+        done = (lambda k: progress(int(bases[k - 1] + files[k - 1].count), total)) if progress else None
+        read = executor.map(_bucket_file, jobs, done=done)
+        raw_lo = np.min([r[0] for r in read], axis=0)
+        raw_hi = np.max([r[1] for r in read], axis=0)
+        heights: dict[int, int] = {}
+        for _, _, counts in read:
+            for k, c in counts.items():
+                heights[k] = heights.get(k, 0) + c
         median = _histogram_median(heights)
-        raw_lo, raw_hi = self._raw_bounds
         vertical = _vertical(self.crs)
-        self._median, self._vertical = median, vertical
-        repeats = self._clean_buckets(median, vertical, dedupe=len(files) > 1)
-        self.summary = _summarise(self.chunks, raw_lo, raw_hi, self.crs, {n: dtypes[n] for n in names}, median)
-        self.summary.gross = self._gross
-        self.summary.repeats = repeats
+        grid = SpacingGrid.over(raw_lo[:2], raw_hi[:2])
+        buckets = sorted({p.name.split(".")[0] for p in self.folder.glob("*.part*.bin")})
+        cleaned = executor.map(_clean_bucket, [(self.folder, b, self.dtype, median, vertical, len(files) > 1, grid)
+                                               for b in buckets])
+        self.summary = _summary([c[0] for c in cleaned], grid, self.crs, {n: self.dtype[n] for n in names}, median)
+        self.summary.gross = sum(c[1] for c in cleaned)
+        self.summary.repeats = sum(c[2] for c in cleaned)
 
     @classmethod
     def open(cls, paths: list[Path], folder: Path, *, crs: pyproj.CRS | None = None,
-             progress: Callable[[int, int], None] | None = None) -> LasStore:
+             progress: Callable[[int, int], None] | None = None, executor=None) -> LasStore:
         """The store kept in ``folder`` by an earlier run (a resumed one), else a new one
         (whatever a killed run left half written there is removed first)."""
         import pickle
@@ -295,99 +325,21 @@ class LasStore:
             store.folder = folder  # the work folder moves to the resumed run's
             return store
         shutil.rmtree(folder, ignore_errors=True)
-        store = cls(paths, folder, crs=crs, progress=progress)
+        store = cls(paths, folder, crs=crs, progress=progress, executor=executor)
         tmp = folder / f".{STORE_FILE}"
         with open(tmp, "wb") as f:
             pickle.dump(store, f)
         tmp.rename(kept)
         return store
 
-    # ------------------------------------------------------------------ reading the files once
-
-    def _bucket_files(self, files, names, total, progress) -> tuple[dict, dict]:
-        import laspy
-
-        dtypes: dict = {}
-        heights: dict[int, int] = {}
-        raw_lo, raw_hi = np.full(3, np.inf), np.full(3, -np.inf)
-        done = base = 0
-        for f in files:
-            read = 0
-            try:
-                with laspy.open(f.path) as reader:
-                    for chunk in reader.chunk_iterator(CHUNK):
-                        xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64)
-                        if not np.isfinite(xyz).all():
-                            raise InputError(f"{f.path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points "
-                                             "have NaN or infinite coordinates")
-                        attrs = {n: np.asarray(chunk[n]) for n in names}
-                        for n, v in attrs.items():
-                            dtypes.setdefault(n, v.dtype)
-                        order = np.arange(base + read, base + read + len(xyz), dtype=np.int64)
-                        self._append(xyz, order, attrs)
-                        raw_lo, raw_hi = np.minimum(raw_lo, xyz.min(axis=0)), np.maximum(raw_hi, xyz.max(axis=0))
-                        keys, counts = np.unique(np.floor(xyz[:, 2]).astype(np.int64), return_counts=True)
-                        for k, c in zip(keys.tolist(), counts.tolist(), strict=True):
-                            heights[k] = heights.get(k, 0) + c
-                        read += len(xyz)
-                        if progress:
-                            progress(done + read, total)
-            except InputError:
-                raise
-            except Exception as exc:  # laspy and lazrs raise many kinds on a damaged file
-                raise InputError(f"{f.path}: cannot read LAS/LAZ ({_short(exc)})") from None
-            if read == 0:
-                raise InputError(f"{f.path}: the point cloud is empty (0 points)")
-            base += f.count
-            done += read
-        self._raw_bounds = (raw_lo, raw_hi)
-        return dtypes, heights
-
-    def _bucket_of(self, xyz: np.ndarray) -> np.ndarray:
-        b = self.bucket
-        bx = np.floor(xyz[:, 0] / b).astype(np.int64)
-        by = np.floor(xyz[:, 1] / b).astype(np.int64)
-        return np.column_stack([bx, by])
-
     def _path(self, bx: int, by: int) -> Path:
         return self.folder / f"{bx}_{by}.bin"
 
-    def _append(self, xyz: np.ndarray, order: np.ndarray, attrs: dict) -> None:
-        dtype = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("order", "i8")]
-                         + [(n, v.dtype) for n, v in attrs.items()])
-        rec = np.empty(len(xyz), dtype)
-        rec["x"], rec["y"], rec["z"], rec["order"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], order
-        for n, v in attrs.items():
-            rec[n] = v
-        keys = self._bucket_of(xyz)
-        uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-        sort = np.argsort(inverse.ravel(), kind="stable")
-        starts = np.searchsorted(inverse.ravel()[sort], np.arange(len(uniq) + 1))
-        for i, (bx, by) in enumerate(uniq.tolist()):
-            with open(self._path(bx, by), "ab") as f:
-                rec[sort[starts[i]:starts[i + 1]]].tofile(f)
-
     def _buckets(self) -> list[Path]:
-        return sorted(self.folder.glob("*.bin"))
+        return sorted(self.folder.glob("*_*.bin"))
 
     def _load(self, path: Path) -> np.ndarray:
         return np.fromfile(path, dtype=self.dtype)
-
-    def _clean_buckets(self, median: float, vertical: float, *, dedupe: bool) -> int:
-        """Drop gross height errors and, for several files, the repeats of overlapping
-        tiles from every bucket (identical points share a bucket); the number of repeats."""
-        repeats = self._gross = 0
-        for path in self._buckets():
-            rec = self._load(path)
-            keep = ~_gross(rec["z"], median, vertical)
-            self._gross += int((~keep).sum())
-            if dedupe:
-                first = _first_of_each(rec)
-                repeats += int((keep & ~first).sum())
-                keep &= first
-            if not keep.all():
-                rec[keep].tofile(path)
-        return repeats
 
     def chunks(self):
         """The kept points, a bucket at a time."""
@@ -429,6 +381,94 @@ class LasStore:
     @property
     def paths(self) -> list[Path]:
         return [f.path for f in self.files]
+
+
+def _record_dtype(path: Path, names: list[str]) -> np.dtype:
+    """The bucket record of a survey: coordinates, survey order and the kept attributes
+    with the dtypes laspy reads them in (the first point of ``path`` tells)."""
+    import laspy
+
+    try:
+        with laspy.open(path) as reader:
+            chunk = next(reader.chunk_iterator(1))
+    except Exception as exc:  # laspy and lazrs raise many kinds on a damaged file
+        raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
+    return np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("order", "i8")]
+                    + [(n, np.asarray(chunk[n]).dtype) for n in names])
+
+
+def _bucket_file(job: tuple) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
+    """Read one input file in chunks into its own part of every bucket it touches (a
+    worker's job: files are read in parallel); its raw bounds and its points per metre of height."""
+    import laspy
+
+    path, index, base, names, dtype, bucket, folder = job
+    heights: dict[int, int] = {}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    read = 0
+    try:
+        with laspy.open(path) as reader:
+            for chunk in reader.chunk_iterator(CHUNK):
+                xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64)
+                if not np.isfinite(xyz).all():
+                    raise InputError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points "
+                                     "have NaN or infinite coordinates")
+                rec = np.empty(len(xyz), dtype)
+                rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+                rec["order"] = np.arange(base + read, base + read + len(xyz), dtype=np.int64)
+                for n in names:
+                    rec[n] = np.asarray(chunk[n])
+                _append(rec, bucket, folder, index)
+                lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+                keys, counts = np.unique(np.floor(xyz[:, 2]).astype(np.int64), return_counts=True)
+                for k, c in zip(keys.tolist(), counts.tolist(), strict=True):
+                    heights[k] = heights.get(k, 0) + c
+                read += len(xyz)
+    except InputError:
+        raise
+    except Exception as exc:  # laspy and lazrs raise many kinds on a damaged file
+        raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
+    if read == 0:
+        raise InputError(f"{path}: the point cloud is empty (0 points)")
+    return lo, hi, heights
+
+
+def _append(rec: np.ndarray, bucket: float, folder: Path, index: int) -> None:
+    """Append records to the part of file ``index`` of each bucket they fall in."""
+    bx = np.floor(rec["x"] / bucket).astype(np.int64)
+    by = np.floor(rec["y"] / bucket).astype(np.int64)
+    x0, y0 = int(bx.min()), int(by.min())
+    key = (bx - x0) * (int(by.max()) - y0 + 1) + (by - y0)  # one integer per bucket: a 1-d sort
+    sort = np.argsort(key, kind="stable")
+    key = key[sort]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    for start, stop in zip(starts, [*starts[1:], len(key)], strict=True):
+        i = sort[start]
+        with open(folder / f"{bx[i]}_{by[i]}.part{index:06d}.bin", "ab") as f:
+            rec[sort[start:stop]].tofile(f)
+
+
+def _clean_bucket(job: tuple) -> tuple[_Part, int, int]:
+    """Join a bucket's parts (file by file: the survey's order), drop gross height errors
+    and, for several files, the repeats of overlapping tiles (identical points share a
+    bucket); its summary figures, gross errors and repeats."""
+    folder, name, dtype, median, vertical, dedupe, grid = job
+    parts = sorted(folder.glob(f"{name}.part*.bin"))
+    rec = np.concatenate([np.fromfile(p, dtype=dtype) for p in parts])
+    keep = ~_gross(rec["z"], median, vertical)
+    gross = int((~keep).sum())
+    repeats = 0
+    if dedupe:
+        first = _first_of_each(rec)
+        repeats = int((keep & ~first).sum())
+        keep &= first
+    rec = rec[keep]
+    rec.tofile(folder / f"{name}.bin")
+    for p in parts:
+        p.unlink()
+    xyz = np.column_stack([rec["x"], rec["y"], rec["z"]])
+    names = [n for n in dtype.names if n not in ("x", "y", "z", "order")]
+    return _Part.of(PointCloud(xyz, {n: rec[n] for n in names}), grid), gross, repeats
 
 
 def _first_of_each(rec: np.ndarray) -> np.ndarray:

@@ -452,7 +452,8 @@ def read_inputs(r: Run) -> None:
     if kind != "points":
         inputs_mod.read_scene(r.inputs, r.source, r.notes)
         return
-    r.source = inputs_mod.read_points(r.inputs, r.cache / "points", auto=r.auto, progress=r.progress)
+    r.source = inputs_mod.read_points(r.inputs, r.cache / "points", auto=r.auto, progress=r.progress,
+                                      executor=r.executor)
     _points_read(r)
 
 
@@ -1111,7 +1112,7 @@ def evaluate_products(r: Run) -> None:
         )
     # where a cell's points fell decides its height beside walls and on steep roofs;
     # the model scanned at the same points and gridded alike has no such error
-    q.model_scan = sf.dsm.like(g.place(paths, "scan"), product="model scanned at the points")
+    q.model_scan = sf.dsm.like(g.place(paths, "scan"), product="model scanned at the points")  # float32
     scan = q.model_scan.data - sf.dsm.data
     tables.append(
         AccuracyReport.from_errors(
