@@ -44,18 +44,16 @@ def write_survey(data: Path, k: int, folder: Path, *, fraction: float = 1.0) -> 
         las.points = las.points[: int(len(las.points) * fraction)]
     h = las.header
     size = (np.asarray(las.xyz).max(axis=0)[:2] - np.asarray(las.xyz).min(axis=0)[:2]) + 0.01
-    groups = 1 if k <= 2 else 16
-    per = max(1, int(round((k * k / groups) ** 0.5)))  # copies per file along each axis
+    split = [range(k)] if k <= 2 else np.array_split(np.arange(k), 4)  # 1 file, or 4 x 4 files
     folder.mkdir(parents=True, exist_ok=True)
     paths, total = [], 0
-    for g in range(groups):
-        gi, gj = divmod(g, int(groups**0.5))
+    for g, (rows, cols) in enumerate((a, b) for a in split for b in split):
         parts = []
-        for i in range(per if groups > 1 else k):
-            for j in range(per if groups > 1 else k):
+        for i in rows:
+            for j in cols:
                 a = las.points.array.copy()
-                a["X"] += int(round((gi * per + i) * size[0] / h.scales[0]))
-                a["Y"] += int(round((gj * per + j) * size[1] / h.scales[1]))
+                a["X"] += int(round(i * size[0] / h.scales[0]))
+                a["Y"] += int(round(j * size[1] / h.scales[1]))
                 parts.append(a)
         out = laspy.LasData(laspy.LasHeader(point_format=h.point_format, version=h.version))
         out.header.scales, out.header.offsets = h.scales, h.offsets

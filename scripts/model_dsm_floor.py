@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from recon3d.core.geo import parse_crs
-from recon3d.pipeline.run import model_check_cells, run
+from recon3d.pipeline.run import run
+from recon3d.quality.evaluate import model_check_cells
 from recon3d.quality.rasterize import surface_at
 from recon3d.terrain.dsm import grid_points, surface_points
 

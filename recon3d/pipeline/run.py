@@ -56,7 +56,7 @@ from recon3d.terrain import ground as ground_stage
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGES", "Run", "RunResult", "model_check_cells", "run"]
+__all__ = ["STAGES", "Run", "RunResult", "run"]
 
 ProgressCallback = Callable[[str, int, int], None]
 
@@ -1102,7 +1102,7 @@ def evaluate_products(r: Run) -> None:
         products = {"DSM": sf.dsm, "DTM": t.dtm, "model DSM": q.model_dsm}
         tables += evaluate.against_checkpoints(products, r.source.checkpoints, u)
     roofs = sf.dsm.data - q.model_dsm.data
-    on_buildings = model_check_cells(sf.dsm, q.model_dsm, r.labels, r.evidence.share, sf.filled)
+    on_buildings = evaluate.model_check_cells(sf.dsm, q.model_dsm, r.labels, r.evidence.share, sf.filled)
     # cells a wall crosses mix roof and ground: there the difference measures where the
     # outline runs (its own accuracy, planimetric), not the roof's height
     inside_roofs = on_buildings & (q.roof_cover >= 1.0)
@@ -1121,7 +1121,10 @@ def evaluate_products(r: Run) -> None:
         )
     )
     r.report["accuracy"] = [tb.to_dict() for tb in tables]
-    _roof_errors(r, np.where(sf.filled, np.nan, -roofs))
+    rms = evaluate.roof_errors(r.labels, np.where(sf.filled, np.nan, -roofs), len(r.city)) * u.vertical
+    for b, value in zip(r.city, rms, strict=True):
+        if b.solids and np.isfinite(value):
+            b.attributes["roof_rms_m"] = round(float(value), 3)
     statuses = [b.status for b in r.city]
     r.report["buildings"] = {
         "count": len(r.city),
@@ -1175,32 +1178,6 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
 
 def _overlaps(a, b) -> bool:
     return a[0] <= b[2] and a[2] >= b[0] and a[1] <= b[3] and a[3] >= b[1]
-
-
-def model_check_cells(dsm: Raster, model_dsm: Raster, labels: np.ndarray, vegetation_share: np.ndarray,
-                      filled: np.ndarray) -> np.ndarray:
-    """(rows, cols) bool: the building cells on which the model DSM is checked against
-    the measured DSM.
-
-    Cells whose top is a tree crown over a roof measure the tree, not the model; cells
-    filled from their rim (no point: LiDAR shadow beside walls) measure nothing.
-    """
-    valid = np.isfinite(dsm.data) & np.isfinite(model_dsm.data)
-    return (labels > 0) & valid & ~(np.nan_to_num(vegetation_share) > 0.5) & ~filled
-
-
-def _roof_errors(r: Run, model_minus_dsm: np.ndarray) -> None:
-    """Per building: RMS of model DSM minus measured DSM over its cells (attribute roof_rms_m)."""
-    from scipy import ndimage
-
-    labels = np.where(np.isfinite(model_minus_dsm), r.labels, 0)
-    index = np.arange(1, len(r.city) + 1)
-    sq = np.nan_to_num(model_minus_dsm) ** 2
-    with np.errstate(invalid="ignore"):
-        rms = np.sqrt(ndimage.mean(sq, labels, index)) * r.units.vertical if len(index) else []
-    for b, value in zip(r.city, rms, strict=True):
-        if b.solids and np.isfinite(value):
-            b.attributes["roof_rms_m"] = round(float(value), 3)
 
 
 def detect_changes(r: Run) -> None:

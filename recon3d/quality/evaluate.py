@@ -22,6 +22,8 @@ __all__ = [
     "filter_scores",
     "ground_filter_errors",
     "landmark_height",
+    "model_check_cells",
+    "roof_errors",
 ]
 
 
@@ -275,3 +277,30 @@ def landmark_height(dsm: Raster, x: float, y: float, *, search: float, ring: tup
     base = float(np.nanmedian(np.where((d > ring[0]) & (d < ring[1]), z, np.nan)))
     top5 = float(np.sort(z[near & np.isfinite(z)])[-5:].mean())
     return {"apex": float(z[row, col]) - base, "top5": top5 - base, "base": base, "row": int(row), "col": int(col)}
+
+
+def model_check_cells(dsm: Raster, model_dsm: Raster, labels: np.ndarray, vegetation_share: np.ndarray,
+                      filled: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: the building cells on which the model DSM is checked against
+    the measured DSM.
+
+    Cells whose top is a tree crown over a roof (``vegetation_share`` above 0.5) measure
+    the tree, not the model; cells filled from their rim (``filled``: no point, LiDAR
+    shadow beside walls) measure nothing.
+    """
+    valid = np.isfinite(dsm.data) & np.isfinite(model_dsm.data)
+    return (labels > 0) & valid & ~(np.nan_to_num(vegetation_share) > 0.5) & ~filled
+
+
+def roof_errors(labels: np.ndarray, model_minus_dsm: np.ndarray, n: int) -> np.ndarray:
+    """(n,) RMS of the model DSM minus the measured DSM over each building's cells
+    (``labels`` 1..n), NaN where a building has no cell with both; in the rasters' units."""
+    from scipy import ndimage
+
+    labels = np.where(np.isfinite(model_minus_dsm), labels, 0)
+    index = np.arange(1, n + 1)
+    sq = np.nan_to_num(model_minus_dsm) ** 2
+    if not n:
+        return np.zeros(0)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.asarray(ndimage.mean(sq, labels, index), np.float64))
