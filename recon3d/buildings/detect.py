@@ -745,6 +745,7 @@ def detect_buildings(
     planar: np.ndarray | None = None,
     point_density: float | None = None,
     fine: FineSurface | None = None,
+    mapper=None,
 ) -> list[shapely.Polygon]:
     """Footprint polygons of building blobs, largest first.
 
@@ -778,6 +779,9 @@ def detect_buildings(
     fine : FineSurface, optional
         The cloud's highest first returns on the half-cell grid (:func:`fine_surface`),
         instead of ``cloud`` and ``point_vegetation``.
+    mapper : callable, optional
+        ``mapper(func, jobs)`` -> ``[func(job) for job in jobs]``, for outlining the blobs
+        elsewhere (worker processes); in this process by default.
 
     Returns
     -------
@@ -794,23 +798,15 @@ def detect_buildings(
         res = transform.a
     min_area = units.area(config.min_area)
     min_edge = max(units.length(config.min_edge), 2 * res)
-    extent = shapely.box(*ndsm.bounds)
-    polygons = []
+    extent = ndsm.bounds
+    jobs = []
     for i, sl in enumerate(ndimage.find_objects(labels)):
         if sl is None:
             continue
         sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in sl)
-        sub = labels[sl] == i + 1
-        raw = outline_mod.raster_outline(sub, transform @ Affine.translation(sl[1].start, sl[0].start), min_hole_area=min_area)
-        if raw is None:
-            continue
-        if config.regularize:
-            poly = outline_mod.regularize(raw, cell=res, min_edge=min_edge, min_hole_area=min_area)
-        else:
-            poly = outline_mod._valid_polygon(raw.simplify(res, preserve_topology=True)) or raw
-        if not extent.contains(poly):  # straight walls extended past the edge of the data
-            poly = outline_mod._valid_polygon(poly.intersection(extent)) or raw
-        polygons.append(shapely.orient_polygons(poly))
+        jobs.append((labels[sl] == i + 1, transform @ Affine.translation(sl[1].start, sl[0].start), res, min_area,
+                     min_edge, config.regularize, extent))
+    polygons = [p for p in (mapper or _serial)(outline_blob, jobs) if p is not None]
     polygons = _remove_overlaps(polygons, min_area / 4)
     if config.split_step > 0:
         polygons = _close_block_gaps(polygons, blobs.labels * np.r_[False, blobs.kept][blobs.labels], ndsm, ndsm.resolution)
@@ -820,6 +816,28 @@ def detect_buildings(
     polygons.sort(key=lambda p: (-p.area, p.centroid.x, p.centroid.y))
     log.info("detected %d buildings", len(polygons))
     return polygons
+
+
+def _serial(func, jobs: list) -> list:
+    return [func(job) for job in jobs]
+
+
+def outline_blob(job: tuple) -> shapely.Polygon | None:
+    """The regularised outline of one blob (a job of :func:`detect_buildings`): its cells
+    (a bool window), the window's transform, the cell, the smallest hole and edge kept,
+    whether to regularise, and the data's extent (straight walls are not extended past it)."""
+    sub, transform, res, min_area, min_edge, regularize, extent = job
+    raw = outline_mod.raster_outline(sub, transform, min_hole_area=min_area)
+    if raw is None:
+        return None
+    if regularize:
+        poly = outline_mod.regularize(raw, cell=res, min_edge=min_edge, min_hole_area=min_area)
+    else:
+        poly = outline_mod._valid_polygon(raw.simplify(res, preserve_topology=True)) or raw
+    box = shapely.box(*extent)
+    if not box.contains(poly):  # straight walls extended past the edge of the data
+        poly = outline_mod._valid_polygon(poly.intersection(box)) or raw
+    return shapely.orient_polygons(poly)
 
 
 #: How many times finer than the DSM's the grid is on which outlines are delineated.

@@ -796,7 +796,7 @@ def find_buildings(r: Run) -> None:
         if r.stereo == "satellite" and sf.unobserved is not None:  # only where matched
             ndsm = ndsm.like(np.where(sf.unobserved, np.nan, ndsm.data), **ndsm.tags)
         polygons = detect.detect_buildings(ndsm, ev.share, cfg, u, dtm=t.dtm, planar=ev.planar,
-                                           point_density=ev.density, fine=ev.fine)
+                                           point_density=ev.density, fine=ev.fine, mapper=_mapper(r))
         if r.stereo == "satellite" and sf.unobserved is not None:
             polygons = _on_observed_ground(r, polygons)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
@@ -818,6 +818,15 @@ def find_buildings(r: Run) -> None:
     meta = {"referenceDate": s.reference_date} if s.reference_date else {}
     r.labels = labels
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
+
+
+def _mapper(r: Run):
+    """``mapper(func, jobs)`` of per-building work: on the run's workers from
+    :data:`_PARALLEL_FROM` jobs on, in this process below (starting workers costs more)."""
+    def mapper(func, jobs):
+        return r.executor.map(func, jobs, workers=1 if len(jobs) < _PARALLEL_FROM else None)
+
+    return mapper
 
 
 #: Least share of the ring of cells around a detected satellite building (2 to 6 m out)
