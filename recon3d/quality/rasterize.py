@@ -122,19 +122,28 @@ class _Scene:
         return (self.top - t_hit + self.origin[2]).reshape(np.shape(x))  # -inf where no hit
 
 
+#: Rows of cells whose rays are cast at a time: bounds the rays' memory (a strip of a
+#: 4,000-column grid at 3 x 3 rays per cell is about 60 MB).
+STRIP_ROWS = 256
+
+
 def _lattice(city: CityModel, grid: Raster, lod: str | None, samples: int) -> tuple[np.ndarray, np.ndarray]:
-    """(highest hit or -inf, share of rays that hit), both (rows, cols), over ``grid``."""
+    """(highest hit or -inf, share of rays that hit), both (rows, cols), over ``grid``,
+    cast :data:`STRIP_ROWS` rows at a time."""
     scene = _Scene(city, lod)
     highest = np.full(grid.shape, -np.inf)
     hits = np.zeros(grid.shape)
     x, y = grid.cell_centers()
-    gx, gy = np.meshgrid(x, y)
     a, e = grid.transform.a, grid.transform.e
     steps = (np.arange(samples) + 0.5) / samples - 0.5  # offsets in cells, centred
-    for sy in steps:
-        for sx in steps:
-            z = scene.highest(gx + sx * a, gy + sy * e)
-            hit = np.isfinite(z)
-            np.maximum(highest, z, out=highest, where=hit)
-            hits += hit
+    for start in range(0, grid.shape[0], STRIP_ROWS):
+        rows = slice(start, start + STRIP_ROWS)
+        gx, gy = np.meshgrid(x, y[rows])
+        top, count = highest[rows], hits[rows]
+        for sy in steps:
+            for sx in steps:
+                z = scene.highest(gx + sx * a, gy + sy * e)
+                hit = np.isfinite(z)
+                np.maximum(top, z, out=top, where=hit)
+                count += hit
     return highest, hits / samples**2
