@@ -322,12 +322,14 @@ def export(out_dir, fmt, dest, overwrite):
     """
     from recon3d.errors import InputError
     from recon3d.io import cityjson, gltf, obj, tiles3d
+    from recon3d.pipeline.output import FinishedRun, Products
 
     dest = dest or out_dir / "export" / f"buildings{_EXPORT_SUFFIX[fmt]}"
     _check_gltf_name(dest, fmt)
     _refuse_existing([dest, dest.with_suffix(".mtl")] if fmt == "obj" else [dest], overwrite)  # OBJ writes its .mtl
-    source = out_dir / "buildings.city.json"
-    city = cityjson.read_cityjson(source, parts=True)  # every BuildingPart's solid, not the first one
+    finished = FinishedRun(out_dir)
+    source = finished.path(Products.CITY)
+    city = finished.city(parts=True)  # every BuildingPart's solid, not the first one
     kinds = [s.kind for b in city for s in b.solids.values()]
     geometries = ", ".join(f"{kinds.count(k)} {'solids' if k == 'Solid' else k}" for k in sorted(set(kinds), reverse=True))
     skipped = ", ".join(f"{n} {k}" for k, n in sorted(city.metadata.get("skipped_geometries", {}).items()))
@@ -361,22 +363,25 @@ def change(out_dir, old_buildings, old_height_field, old_height_reference, overw
       recon3d change out --old-buildings bati_2015.shp
     """
     from recon3d.core.geo import crs_units
-    from recon3d.io.cityjson import read_cityjson, write_cityjson
-    from recon3d.io.geotiff import read_raster, write_raster
+    from recon3d.io.cityjson import write_cityjson
+    from recon3d.io.geotiff import write_raster
     from recon3d.io.vectors import read_footprints, write_features
+    from recon3d.pipeline.output import FinishedRun, Products
     from recon3d.quality import change as change_mod
 
-    target = out_dir / "changes.geojson"
-    _refuse_existing([target, out_dir / "changes.tif", out_dir / "buildings_updated.city.json"], overwrite)
-    city = read_cityjson(out_dir / "buildings.city.json")
-    ndsm = read_raster(out_dir / "ndsm.tif")
+    finished = FinishedRun(out_dir)
+    target, raster, updated = (finished.path(n, required=False)
+                               for n in (Products.CHANGES, Products.CHANGES_RASTER, Products.UPDATED_CITY))
+    _refuse_existing([target, raster, updated], overwrite)
+    city = finished.city()
+    ndsm = finished.raster(Products.NDSM)
     crs = city.crs or ndsm.crs
     old, _ = read_footprints(old_buildings, crs=crs)
     params = change_mod.ChangeParams(height_field=old_height_field, height_reference=old_height_reference)
     result = change_mod.detect_changes(old, city, ndsm, units=crs_units(crs), config=params)
     write_features(target, *change_mod.change_features(result), crs)
-    write_raster(change_mod.change_raster(result, ndsm), out_dir / "changes.tif")
-    write_cityjson(change_mod.updated_model(old, city, result), out_dir / "buildings_updated.city.json")
+    write_raster(change_mod.change_raster(result, ndsm), raster)
+    write_cityjson(change_mod.updated_model(old, city, result), updated)
     click.echo("changes: " + ", ".join(f"{k} {v}" for k, v in sorted(result.summary.items()) if v))
     for note in result.notes:
         click.echo(f"note: {note}")
@@ -522,10 +527,10 @@ def evaluate_buildings(out_dir, reference, crs, json_path, overwrite):
       recon3d evaluate buildings out --reference bduni_buildings.shp
       recon3d evaluate buildings out --reference delft.laz --crs EPSG:7415
     """
-    from recon3d.io.cityjson import read_cityjson
+    from recon3d.pipeline.output import FinishedRun
 
     _refuse_existing([json_path] if json_path else [], overwrite)
-    city = read_cityjson(out_dir / "buildings.city.json")
+    city = FinishedRun(out_dir).city()
     detected = [b.footprint for b in city if b.status == "ok"]
     extent = _run_extent(out_dir, detected)
     if reference.suffix.lower() in (".las", ".laz"):
@@ -550,11 +555,11 @@ def _run_extent(out_dir: Path, detected: list) -> tuple[float, float, float, flo
     """(x0, y0, x1, y1) of the run's data: its DSM's grid, else its buildings, else None."""
     import shapely
 
-    data = out_dir / "dsm.tif"
-    if data.exists():
-        from recon3d.io.geotiff import read_raster
+    from recon3d.pipeline.output import FinishedRun, Products
 
-        return read_raster(data).bounds
+    finished = FinishedRun(out_dir)
+    if finished.path(Products.DSM, required=False).exists():
+        return finished.raster(Products.DSM).bounds
     return shapely.MultiPolygon(detected).bounds if detected else None
 
 

@@ -1,4 +1,5 @@
-"""The output folder of a run: checked first, built aside, published in one step.
+"""The output folder of a run: its products' names, checked first, built aside,
+published in one step, and read back by the commands that work on a finished run.
 
 A run never writes into its output folder while it works. It checks the folder before
 anything is read (not the input itself, not inside or around any input, not a
@@ -25,8 +26,69 @@ from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FINGERPRINT", "WORK_CACHE", "adopt", "check_output", "count_results", "publish", "remove_stale",
-           "work_folder"]
+__all__ = ["FINGERPRINT", "WORK_CACHE", "FinishedRun", "Products", "adopt", "check_output", "count_results", "publish",
+           "remove_stale", "work_folder"]
+
+
+class Products:
+    """The names of the products in a run's output folder (DESIGN.md's contract)."""
+
+    DSM = "dsm.tif"
+    DTM = "dtm.tif"
+    NDSM = "ndsm.tif"
+    MODEL_DSM = "model_dsm.tif"
+    CLOUD = "cloud.laz"
+    CITY = "buildings.city.json"
+    OBJ = "buildings.obj"
+    GLB = "buildings.glb"
+    TILES = "buildings_3dtiles"
+    FOOTPRINTS = "footprints.geojson"
+    FOOTPRINTS_GPKG = "footprints.gpkg"
+    ORTHO = "ortho.tif"
+    ORTHO_DIFF = "ortho_diff.tif"
+    CHANGES = "changes.geojson"
+    CHANGES_RASTER = "changes.tif"
+    UPDATED_CITY = "buildings_updated.city.json"
+    REPORT = "report.json"
+    RUN = "run.json"
+
+
+class FinishedRun:
+    """A finished run's output folder, read by ``recon3d change``, ``export``, ``evaluate``.
+
+    Parameters
+    ----------
+    folder : Path
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+
+    def path(self, name: str, *, required: bool = True) -> Path:
+        """The product ``name`` (a :class:`Products` name).
+
+        Raises
+        ------
+        InputError
+            It is missing (``required``): the folder is no finished run, or not this one's kind.
+        """
+        path = self.folder / name
+        if required and not path.exists():
+            what = "not a folder" if not self.folder.is_dir() else f"no {name} in it"
+            raise InputError(f"{self.folder}: not the output folder of a finished recon3d run ({what})")
+        return path
+
+    def city(self, **options):
+        """The buildings (buildings.city.json; ``options`` as in :func:`recon3d.io.cityjson.read_cityjson`)."""
+        from recon3d.io.cityjson import read_cityjson
+
+        return read_cityjson(self.path(Products.CITY), **options)
+
+    def raster(self, name: str):
+        """One of the run's rasters (:class:`~recon3d.core.raster.Raster`)."""
+        from recon3d.io.geotiff import read_raster
+
+        return read_raster(self.path(name))
 
 #: Sub-folder of a work folder holding what a resumed run can take up (the points in
 #: buckets, each tile's results); removed before the products are published.

@@ -14,6 +14,7 @@ from recon3d.core.pointcloud import PointCloud
 from recon3d.core.raster import Raster
 from recon3d.io import vectors
 from recon3d.io.geotiff import write_raster
+from recon3d.pipeline.output import Products as P
 
 if TYPE_CHECKING:
     from recon3d.pipeline.run import Run
@@ -30,31 +31,31 @@ def write_products(r: Run) -> None:
 
     w, q, city = r.work_dir, r.quality, r.city
     sf, t = r.surface, r.terrain
-    for name, raster in (("dsm", sf.dsm), ("dtm", t.dtm), ("ndsm", t.ndsm), ("model_dsm", q.model_dsm)):
+    for name, raster in ((P.DSM, sf.dsm), (P.DTM, t.dtm), (P.NDSM, t.ndsm), (P.MODEL_DSM, q.model_dsm)):
         raster.tags.setdefault("height_units", r.units.name)
-        write_raster(raster, w / f"{name}.tif")
+        write_raster(raster, w / name)
     if q.ortho is not None:
         from recon3d.io.geotiff import write_image
 
         grid = Raster(np.zeros((1, 1)), q.ortho.transform, sf.dsm.crs,
                       {"product": f"true orthophoto on the {r.config.ortho.surface}"})
-        write_image(q.ortho.data, grid, w / "ortho.tif", mask=q.ortho.seen)
-        write_raster(q.ortho_diff, w / "ortho_diff.tif")
-    write_cloud(r, w / "cloud.laz")
-    write_cityjson(city, w / "buildings.city.json")
-    write_obj(city, w / "buildings.obj")
-    write_glb(city, w / "buildings.glb")
-    write_3dtiles(city, w / "buildings_3dtiles")
-    write_footprints(r, w / "footprints.geojson", w / "footprints.gpkg")
+        write_image(q.ortho.data, grid, w / P.ORTHO, mask=q.ortho.seen)
+        write_raster(q.ortho_diff, w / P.ORTHO_DIFF)
+    write_cloud(r, w / P.CLOUD)
+    write_cityjson(city, w / P.CITY)
+    write_obj(city, w / P.OBJ)
+    write_glb(city, w / P.GLB)
+    write_3dtiles(city, w / P.TILES)
+    write_footprints(r, w / P.FOOTPRINTS, w / P.FOOTPRINTS_GPKG)
     if q.changes is not None:
         from recon3d.quality import change
 
         geoms, props = change.change_features(q.changes)
-        vectors.write_features(w / "changes.geojson", geoms, props, city.crs)
-        write_raster(change.change_raster(q.changes, sf.dsm), w / "changes.tif")
-        write_cityjson(change.updated_model(r.source.old_buildings, city, q.changes), w / "buildings_updated.city.json")
+        vectors.write_features(w / P.CHANGES, geoms, props, city.crs)
+        write_raster(change.change_raster(q.changes, sf.dsm), w / P.CHANGES_RASTER)
+        write_cityjson(change.updated_model(r.source.old_buildings, city, q.changes), w / P.UPDATED_CITY)
     r.report["warnings"] = r.warnings
-    write_json(w / "report.json", r.report)
+    write_json(w / P.REPORT, r.report)
 
 
 def write_cloud(r: Run, path: Path) -> None:

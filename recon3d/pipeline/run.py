@@ -374,7 +374,7 @@ def run(
         shutil.rmtree(cache, ignore_errors=True)
         from recon3d.pipeline.products import run_record, write_json
 
-        write_json(work_dir / "run.json", run_record(r))
+        write_json(work_dir / output.Products.RUN, run_record(r))
         from recon3d.report import write_report
 
         write_report(work_dir)
