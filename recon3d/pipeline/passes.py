@@ -80,26 +80,44 @@ class Spec:
         return Raster(np.zeros(shape, np.float32), self.transform, self.store.summary.crs, {},
                       (tile.rows.start, tile.cols.start))
 
+    def bounds(self, rows: slice, cols: slice) -> tuple[float, float, float, float]:
+        """(west, south, east, north) of the cells ``[rows, cols]`` of the DSM grid (a
+        tile's core or window)."""
+        t = self.transform
+        return t.c + cols.start * t.a, t.f + rows.stop * t.e, t.c + cols.stop * t.a, t.f + rows.start * t.e
 
-def load(spec: Spec, tile: Tile, name: str) -> dict[str, np.ndarray]:
-    """The saved result of pass ``name`` for ``tile``."""
+
+def load(spec: Spec, tile: Tile, name: str, *keys: str) -> dict[str, np.ndarray]:
+    """The saved result of pass ``name`` for ``tile``: ``keys`` of it, or all of it."""
     with np.load(spec.folder / tile.name / f"{name}.npz") as data:
-        return {k: data[k] for k in data.files}
+        return {k: data[k] for k in keys or data.files}
 
 
-def _args(grid: Raster) -> tuple:
-    return grid.transform, grid.shape, grid.origin
-
-
-def cover(window: Raster, transform: Affine, shape: tuple[int, int], margin: int = 1) -> tuple[slice, slice]:
-    """The cells of another grid (``transform``, ``shape``) under a window of the DSM
-    grid, ``margin`` cells wider, clipped to that grid."""
-    west, south, east, north = window.bounds
+def cover(bounds: tuple, transform: Affine, shape: tuple[int, int], margin: int = 1) -> tuple[slice, slice]:
+    """The cells of another grid (``transform``, ``shape``) under ``bounds`` (west, south,
+    east, north), ``margin`` cells wider, clipped to that grid."""
+    west, south, east, north = bounds
     c0 = int(np.floor((west - transform.c) / transform.a)) - margin
     c1 = int(np.floor((east - transform.c) / transform.a)) + 1 + margin
     r0 = int(np.floor((north - transform.f) / transform.e)) - margin
     r1 = int(np.floor((south - transform.f) / transform.e)) + 1 + margin
     return slice(max(r0, 0), min(r1, shape[0])), slice(max(c0, 0), min(c1, shape[1]))
+
+
+def _highest(spec: Spec, cloud: PointCloud, grid: Raster) -> np.ndarray:
+    """(rows, cols) float64 DSM cells of ``cloud`` on ``grid`` before hole filling: the
+    highest surface point (not noise) per cell, or for stereo the highest (frame) or
+    median (satellite) observed point per pair and the median over the pairs."""
+    keep = dsm_stage.surface_points(cloud)
+    xyz, a = cloud.xyz[keep], cloud.attributes
+    if spec.stereo and "observed" in a:
+        source = a.get("point_source_id")
+        return dsm_stage.grid_stereo(
+            xyz, grid.transform, grid.shape, observed=(a["observed"] > 0)[keep],
+            source=None if source is None else source[keep],
+            per_source="median" if spec.stereo == "satellite" else "max", origin=grid.origin,
+        )
+    return dsm_stage.grid_points(xyz, grid.transform, grid.shape, reducer="max", origin=grid.origin)
 
 
 # --------------------------------------------------------------------------- passes
@@ -112,27 +130,20 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     pts = spec.core(tile)
     cloud, a = pts.cloud, pts.cloud.attributes
     grid = spec.grid(tile)
-    T, shape, origin = _args(grid)
+    T, shape, origin = grid.transform, grid.shape, grid.origin
     keep = dsm_stage.surface_points(cloud)
     xyz = cloud.xyz[keep]
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {"dsm": _highest(spec, cloud, grid)}
     if spec.stereo and "observed" in a:
-        source = a.get("point_source_id")
-        out["dsm"] = dsm_stage.grid_stereo(
-            xyz, T, shape, observed=(a["observed"] > 0)[keep], source=None if source is None else source[keep],
-            per_source="median" if spec.stereo == "satellite" else "max", origin=origin,
-        )
         out["observed"] = dsm_stage.grid_points(cloud.xyz[a["observed"] > 0], T, shape, reducer="count", origin=origin)
         if "consistent" in a:
             out["consistent"] = dsm_stage.grid_points(cloud.xyz[a["consistent"] > 0], T, shape, reducer="count",
                                                       origin=origin)
-    else:
-        out["dsm"] = dsm_stage.grid_points(xyz, T, shape, reducer="max", origin=origin)
     out["count"] = dsm_stage.grid_points(xyz, T, shape, reducer="count", origin=origin)
     out["points"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin)
     first = np.asarray(a["return_number"]) <= 1 if "return_number" in a else np.ones(len(cloud), bool)
     out["first_returns"] = np.int64(first.sum())
-    rows, cols = cover(grid, ground_transform, ground_shape)
+    rows, cols = cover(grid.bounds, ground_transform, ground_shape)
     out["zmin_origin"] = np.array([rows.start, cols.start])
     out["zmin"] = ground_stage.lowest_points(cloud, ground_transform, (rows.stop - rows.start, cols.stop - cols.start),
                                              quality_cut=spec.summary.quality_cut, origin=(rows.start, cols.start))
@@ -187,7 +198,7 @@ def vegetation_decide(spec: Spec, tile: Tile, survey: vegetation.Survey, noise: 
     """Which core points are vegetation, their roughness, and the cells' vegetation and
     planar shares and highest first returns (the building detection's evidence)."""
     pts, core = spec.window(tile, buffer)
-    f = load(spec, tile, "vegetation_features")
+    f = load(spec, tile, "vegetation_features")  # every key: the candidates are the whole result
     cand = vegetation.Candidates(f["index"], f["roughness"], f["scattering"], f["neighbours"].astype(np.int64),
                                  f.get("multi"), f.get("colour"))
     veg = np.zeros(len(pts), bool)
@@ -218,7 +229,8 @@ def building_points(spec: Spec, tile: Tile, boxes: np.ndarray, which: np.ndarray
         Their indices among all buildings.
     """
     pts = spec.core(tile)
-    roof = ~load(spec, tile, "ground")["is_ground"] & ~load(spec, tile, "vegetation_decide")["vegetation"]
+    roof = ~load(spec, tile, "ground", "is_ground")["is_ground"]
+    roof &= ~load(spec, tile, "vegetation_decide", "vegetation")["vegetation"]
     xyz, order = pts.cloud.xyz[roof], pts.order[roof]
     out = {}
     for (x0, y0, x1, y1), i in zip(boxes, which, strict=True):
@@ -280,8 +292,8 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     pts, core = spec.window(tile, f.buffer) if f.reference_grid is not None else (spec.core(tile), None)
     own = pts if core is None else pts.subset(core)
     cloud, xyz = own.cloud, own.cloud.xyz
-    is_ground = load(spec, tile, "ground")["is_ground"]
-    decided = load(spec, tile, "vegetation_decide")
+    is_ground = load(spec, tile, "ground", "is_ground")["is_ground"]
+    decided = load(spec, tile, "vegetation_decide", "vegetation", "roughness")
     veg, rough = decided["vegetation"], decided["roughness"]
     roof_surface = None
     if f.roofs is not None:
@@ -304,7 +316,7 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     out["scan"] = _scan(spec, tile, own, f)
     if spec.summary.provider_classes:
         out.update(_provider_scores(spec, tile, pts, core, own, point_classes, f))
-    out.update(_records(own.cloud.with_attribute("classification", point_classes), spec, tile))
+    out.update(_records(own, point_classes))
     return out
 
 
@@ -313,22 +325,13 @@ def _scan(spec: Spec, tile: Tile, own: TilePoints, f: Finish) -> np.ndarray:
     the model's surface above it (the terrain beside the buildings), gridded like the DSM."""
     from recon3d.quality.rasterize import surface_at
 
-    xyz, a = own.cloud.xyz, own.cloud.attributes
+    xyz = own.cloud.xyz
     if f.model is None:
         z = f.dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=True)
     else:
         z = surface_at(f.model, xyz[:, 0], xyz[:, 1], f.dtm, top=f.model_top)
-    scanned = PointCloud(np.column_stack([xyz[:, :2], z]), a, own.cloud.crs)[np.isfinite(z)]
-    grid = spec.grid(tile)
-    keep = dsm_stage.surface_points(scanned)
-    pts = scanned.xyz[keep]
-    if spec.stereo and "observed" in a:
-        sa = scanned.attributes
-        source = sa.get("point_source_id")
-        return dsm_stage.grid_stereo(pts, *_args(grid)[:2], observed=(sa["observed"] > 0)[keep],
-                                     source=None if source is None else source[keep],
-                                     per_source="median" if spec.stereo == "satellite" else "max", origin=grid.origin)
-    return dsm_stage.grid_points(pts, *_args(grid)[:2], reducer="max", origin=grid.origin)
+    scanned = PointCloud(np.column_stack([xyz[:, :2], z]), own.cloud.attributes, own.cloud.crs)[np.isfinite(z)]
+    return _highest(spec, scanned, spec.grid(tile))
 
 
 def _provider_scores(spec: Spec, tile: Tile, pts: TilePoints, core: np.ndarray, own: TilePoints,
@@ -360,22 +363,15 @@ REFERENCE_DISTANCE = 1.0
 def _reference_cells(spec: Spec, tile: Tile, pts: TilePoints, grid: building_quality.ReferenceGrid):
     """The cells of the provider-class evaluation grid whose centres lie in the tile's core:
     flat indices, and whether a surface point lies near enough and is of the building class."""
-    T, (rows, cols) = grid.transform, grid.shape
-    west = spec.transform.c + tile.cols.start * spec.transform.a
-    east = spec.transform.c + tile.cols.stop * spec.transform.a
-    north = spec.transform.f + tile.rows.start * spec.transform.e
-    south = spec.transform.f + tile.rows.stop * spec.transform.e
-    c0 = max(int(np.floor((west - T.c) / T.a)) - 1, 0)
-    c1 = min(int(np.ceil((east - T.c) / T.a)) + 1, cols)
-    r0 = max(int(np.floor((north - T.f) / T.e)) - 1, 0)
-    r1 = min(int(np.ceil((south - T.f) / T.e)) + 1, rows)
-    if c1 <= c0 or r1 <= r0:
+    cols = grid.shape[1]
+    rs, cs = cover(spec.bounds(tile.rows, tile.cols), grid.transform, grid.shape)
+    if rs.stop <= rs.start or cs.stop <= cs.start:
         return np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, bool)
-    gx, gy = grid.centres(slice(r0, r1), slice(c0, c1))
+    gx, gy = grid.centres(rs, cs)
     centres = np.column_stack([gx.ravel(), gy.ravel()])
     row, col = cell_rowcol(centres, spec.transform)
     mine = (row >= tile.rows.start) & (row < tile.rows.stop) & (col >= tile.cols.start) & (col < tile.cols.stop)
-    rr, cc = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
+    rr, cc = np.meshgrid(np.arange(rs.start, rs.stop), np.arange(cs.start, cs.stop), indexing="ij")
     cells = (rr.ravel() * cols + cc.ravel())[mine]
     seen = building_quality.surface_points(pts.cloud)
     valid, nearest = building_quality.nearest_point(
@@ -385,10 +381,10 @@ def _reference_cells(spec: Spec, tile: Tile, pts: TilePoints, grid: building_qua
     return cells, valid, building
 
 
-def _records(cloud: PointCloud, spec: Spec, tile: Tile) -> dict:
-    """The tile's points as cloud.laz holds them: in the order of their blocks' Morton
-    codes, then x, y, z, GPS time and intensity (the same for every tiling)."""
-    row, col = cell_rowcol(cloud.xyz, spec.transform)
+def _records(own: TilePoints, point_classes: np.ndarray) -> dict:
+    """The tile's points, with recon3d's classes, as cloud.laz holds them: in the order of
+    their blocks' Morton codes, then x, y, z, GPS time and intensity (the same for every tiling)."""
+    cloud, row, col = own.cloud.with_attribute("classification", point_classes), own.row, own.col
     a = cloud.attributes
     keys = [a[k] for k in ("intensity", "gps_time") if k in a]
     keys += [cloud.xyz[:, 2], cloud.xyz[:, 1], cloud.xyz[:, 0], morton(row // BLOCK, col // BLOCK)]

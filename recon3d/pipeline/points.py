@@ -138,10 +138,10 @@ def _gross(z: np.ndarray, median: float, vertical: float) -> np.ndarray:
 class _Part:
     """The summary figures of some of the kept points, merged with ``+`` into the survey's."""
 
-    count: int = 0
-    lo: np.ndarray = None  # type: ignore[assignment]
-    hi: np.ndarray = None  # type: ignore[assignment]
-    covered: np.ndarray | None = None
+    count: int
+    lo: np.ndarray
+    hi: np.ndarray
+    covered: np.ndarray  # cells of the spacing grid holding points
     ground: int = 0
     returns: bool = False
     nir: bool = False
@@ -377,10 +377,6 @@ class LasStore:
         sort = np.argsort(rec["order"], kind="stable")
         rec, row, col = rec[sort], row[sort], col[sort]
         return TilePoints(self._cloud(rec), np.ascontiguousarray(rec["order"]), row, col)
-
-    @property
-    def paths(self) -> list[Path]:
-        return [f.path for f in self.files]
 
 
 def _record_dtype(path: Path, names: list[str]) -> np.dtype:

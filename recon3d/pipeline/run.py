@@ -49,7 +49,7 @@ from recon3d.pipeline import output, passes
 from recon3d.pipeline.executor import Executor, connect, default_workers
 from recon3d.pipeline.inputs import Inputs, Source
 from recon3d.pipeline.points import MemoryStore, cell_rowcol
-from recon3d.pipeline.tiling import BLOCK, Tile, TileGrid, plan_tiles
+from recon3d.pipeline.tiling import BLOCK, Tile, plan_tiles
 from recon3d.terrain import dsm as dsm_stage
 from recon3d.terrain import dtm as dtm_stage
 from recon3d.terrain import ground as ground_stage
@@ -83,24 +83,16 @@ class Grid:
     transform: Any
     shape: tuple[int, int]
     tiles: list[Tile]
-    tile_grid: TileGrid
     spec: passes.Spec
     buffers: dict[str, int]
 
     def raster(self, data: np.ndarray, crs, **tags: str) -> Raster:
         return Raster(data, self.transform, crs, dict(tags))
 
-    def place(self, paths: list[Path], key: str, dtype=np.float64, fill=np.nan) -> np.ndarray:
-        """The whole grid of one raster result of a tile pass, each tile's core in its place."""
-        out = np.full(self.shape, fill, dtype)
-        for tile, path in zip(self.tiles, paths, strict=True):
-            with np.load(path) as data:
-                out[tile.rows, tile.cols] = data[key]
-        return out
-
-    def fine(self, paths: list[Path], key: str, dtype, fill) -> np.ndarray:
-        """As :meth:`place`, on the grid :data:`~recon3d.buildings.detect.FINE` times finer."""
-        f = detect.FINE
+    def place(self, paths: list[Path], key: str, dtype=np.float64, fill=np.nan, factor: int = 1) -> np.ndarray:
+        """The whole grid of one raster result of a tile pass, each tile's core in its
+        place; on a grid ``factor`` times finer than the DSM's with ``factor``."""
+        f = factor
         out = np.full((self.shape[0] * f, self.shape[1] * f), fill, dtype)
         for tile, path in zip(self.tiles, paths, strict=True):
             with np.load(path) as data:
@@ -129,8 +121,7 @@ class Terrain:
 
     dtm: Raster
     ndsm: Raster
-    noise: float  # height noise of the minimum surface (CRS units)
-    ground_points: int = 0
+    noise: float  # height noise of the minimum surface (CRS units, as run.json records it)
 
 
 @dataclass
@@ -355,8 +346,8 @@ def run(
         if resume:
             notes.append("--resume: no earlier work of this run was found; started afresh")
     (cache / output.FINGERPRINT).write_text(json.dumps(fingerprint, sort_keys=True), encoding="utf-8")
-    r = Run(inputs, config, out, work_dir, cache, Executor(_tile_workers(workers), client), workers,
-            keep_points=keep_points)
+    r = Run(inputs, config, out, work_dir, cache, Executor(default_workers() if workers is None else workers, client),
+            workers, keep_points=keep_points)
     r.notes += notes
     if client is not None:
         r.auto["executor"] = {"value": f"dask {scheduler}", "reason": "--scheduler/--dask"}
@@ -425,11 +416,6 @@ def _fingerprint(inputs: Inputs, config: PipelineConfig) -> dict:
 
     return {"recon3d": __version__, "inputs": [stat(p) for p in inputs.given()],
             "crs": inputs.crs.to_wkt() if inputs.crs is not None else None, "config": config.to_dict()}
-
-
-def _tile_workers(workers: int | None) -> int:
-    """Processes for the tile passes and the solids (the solids may use fewer: see :func:`build_solids`)."""
-    return default_workers() if workers is None else workers
 
 
 def _close(client) -> None:
@@ -558,7 +544,7 @@ def plan(r: Run) -> None:
                                             "a tile's edge of any per-point rule"}}
     spec = passes.Spec(s.store, transform, shape, r.cache / f"tiles-{tile_grid.size}", cfg, u, s.summary,
                        r.stereo)
-    r.grid = Grid(transform, shape, tiles, tile_grid, spec, buffers)
+    r.grid = Grid(transform, shape, tiles, spec, buffers)
 
 
 def _occupied_blocks(r: Run, transform, shape) -> np.ndarray:
@@ -578,8 +564,7 @@ def make_dsm(r: Run) -> None:
     defaults = HOLE_AREA["lidar" if stereo is None else stereo]
     hole_area = cfg.max_hole_area if cfg.max_hole_area is not None else defaults[0]
     r.auto["dsm.max_hole_area"] = {"value": hole_area, "reason": "config" if cfg.max_hole_area is not None else defaults[1]}
-    gcell, why = ground_stage.surface_cell(r.config.ground, u, res)
-    gtransform, gshape = ground_stage.surface_grid(s.summary.bounds, gcell)
+    gtransform, gshape = ground_stage.surface_grid(s.summary.bounds, ground_stage.surface_cell(r.config.ground, u, res)[0])
     paths = r.tiles("surface", passes.surface, [(gtransform, gshape)] * len(g.tiles))
     raw = g.place(paths, "dsm")
     count = g.place(paths, "count", fill=0.0)
@@ -629,7 +614,6 @@ def make_dsm(r: Run) -> None:
             unobserved &= common
     r.surface = Surface(dsm, filled, unobserved, consistent_cells, common, g.place(paths, "points", fill=0.0), first,
                         (lo, hi), (zmin, gtransform))
-    r.auto["ground_cell"] = {"value": gtransform.a, "unit": u.name, "reason": why}
     if stereo == "frame":
         _check_common_area(r)
 
@@ -671,7 +655,8 @@ def classify_ground(r: Run) -> None:
             raise InputError(f"the point cloud has {s.count} point(s); ground filtering needs at least 3")
         method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes)
         params["method"] = {"value": method, "reason": why}
-        params["cell"] = r.auto.pop("ground_cell")
+        cell, why = ground_stage.surface_cell(cfg, u, r.grid.transform.a)
+        params["cell"] = {"value": cell, "reason": why}
         if s.quality_cut is not None:
             params["quality_cut"] = {"value": s.quality_cut, "reason": ground_stage.QUALITY_CUT_REASON}
         surface = ground_stage.minimum_surface(*r.surface.ground_surface, cfg, u, params)
@@ -683,11 +668,12 @@ def classify_ground(r: Run) -> None:
     for tile in g.tiles:
         window = None
         if terrain is not None:  # two cells around the core: the bilinear sample and the gradient
-            window = terrain.window(*passes.cover(g.spec.grid(tile), terrain.transform, terrain.shape, margin=2))
+            window = terrain.window(*passes.cover(g.spec.grid(tile).bounds, terrain.transform, terrain.shape, margin=2))
         args.append((window, noise, method))
     paths = r.passes["ground"] = r.tiles("ground", passes.ground, args)
     r.auto["ground"] = params
-    r.terrain = Terrain(None, None, noise)
+    # the stages after the filter take the noise as run.json records it (to the mm)
+    r.terrain = Terrain(None, None, params.get("noise", {}).get("value", 0.0) / u.vertical)
     counts = np.zeros(5, np.int64)
     ground_points = 0
     for path in paths:
@@ -695,7 +681,6 @@ def classify_ground(r: Run) -> None:
             ground_points += int(data["is_ground"].sum())
             if "filter_counts" in data:
                 counts += data["filter_counts"]
-    r.terrain.ground_points = ground_points
     log.info("%s: %d of %d points ground (%.1f %%)", method, ground_points, s.count, 100 * ground_points / s.count)
     if s.provider_classes:
         from recon3d.quality import evaluate
@@ -705,11 +690,11 @@ def classify_ground(r: Run) -> None:
 
 def make_dtm(r: Run) -> None:
     """The DTM from the ground points' cells (breaklines and spot heights honoured), and the nDSM."""
-    g, u, s = r.grid, r.units, r.source
+    g, s = r.grid, r.source
     paths = r.passes["ground"]
     mean = g.place(paths, "mean")
     count = g.place(paths, "count", fill=0.0)
-    noise = r.auto["ground"].get("noise", {}).get("value", 0.0) / u.vertical
+    noise = r.terrain.noise
     constraints = None
     if s.constraints is not None:
         lines, points = s.constraints
@@ -763,7 +748,8 @@ def classify_vegetation(r: Run) -> None:
     paths = r.tiles("vegetation_decide", passes.vegetation_decide, [(survey, noise, buffer, tolerance)] * len(g.tiles))
     share = g.place(paths, "share", np.float32, fill=0.0)
     planar = g.place(paths, "planar", np.float32, fill=1.0)
-    fine = detect.FineSurface(g.fine(paths, "fine_z", np.float64, np.nan), g.fine(paths, "fine_vegetation", bool, False))
+    fine = detect.FineSurface(g.place(paths, "fine_z", factor=detect.FINE),
+                              g.place(paths, "fine_vegetation", bool, False, factor=detect.FINE))
     finite = np.count_nonzero(np.isfinite(r.surface.dsm.data))
     area = finite * u.area(1.0) ** -1 * g.transform.a**2
     density = float(r.surface.first_returns / area) if area > 0 else 0.0
@@ -960,10 +946,7 @@ def _building_points(r: Run, boxes: np.ndarray) -> list[np.ndarray]:
     g = r.grid
     args = []
     for tile in g.tiles:
-        x0 = g.transform.c + tile.cols.start * g.transform.a
-        x1 = g.transform.c + tile.cols.stop * g.transform.a
-        y1 = g.transform.f + tile.rows.start * g.transform.e
-        y0 = g.transform.f + tile.rows.stop * g.transform.e
+        x0, y0, x1, y1 = g.spec.bounds(tile.rows, tile.cols)
         touch = np.flatnonzero((boxes[:, 0] <= x1) & (boxes[:, 2] >= x0) & (boxes[:, 1] <= y1) & (boxes[:, 3] >= y0))
         args.append((boxes[touch], touch))
     paths = r.tiles("building_points", passes.building_points, args)
@@ -1164,13 +1147,10 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
     u, g = r.units, r.grid
     with_roofs, with_solid, depth, roofs_top, model_top = shared
     rows, cols = tile.window(1, g.shape)
-    x0 = g.transform.c + cols.start * g.transform.a
-    x1 = g.transform.c + cols.stop * g.transform.a
-    y1 = g.transform.f + rows.start * g.transform.e
-    y0 = g.transform.f + rows.stop * g.transform.e
+    box = g.spec.bounds(rows, cols)
 
     def touching(buildings):
-        keep = [b for b in buildings if b.solids and _overlaps(b.footprint.bounds, (x0, y0, x1, y1))]
+        keep = [b for b in buildings if b.solids and _overlaps(b.footprint.bounds, box)]
         return CityModel(keep, r.city.crs, r.city.frame) if keep else None
 
     plane = r.evidence.plane_tolerance

@@ -81,11 +81,6 @@ class TileGrid:
     size: int
     buffer: int
 
-    @property
-    def level(self) -> int:
-        """log2(size / BLOCK)."""
-        return int(round(math.log2(self.size // BLOCK)))
-
     def tiles(self, occupied: np.ndarray | None = None) -> list[Tile]:
         """The tiles, in Morton order; with ``occupied`` ((rows, cols) of blocks, bool),
         only those holding a block with points."""

@@ -167,7 +167,7 @@ def _outline_errors(found: list[shapely.Polygon], det: list[shapely.Polygon], st
     }
 
 
-def _surface_points(cloud: PointCloud) -> np.ndarray:
+def surface_points(cloud: PointCloud) -> np.ndarray:
     """Indices of the points that see the surface from above (first returns, no noise)."""
     keep = np.ones(len(cloud), bool)
     a = cloud.attributes
@@ -253,11 +253,6 @@ def evaluate_against_classes(
             vegetation_truth = np.isin(reference_classes, (3, 4, 5))
         out.update(vegetation_as_building(*vegetation_counts(vegetation_truth, point_classes)))
     return out
-
-
-def surface_points(cloud: PointCloud) -> np.ndarray:
-    """Indices of the points that see the surface from above (first returns, no noise)."""
-    return _surface_points(cloud)
 
 
 @dataclass(frozen=True)
