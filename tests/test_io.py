@@ -54,6 +54,28 @@ def test_las_round_trip_keeps_classes_rgb_crs(tmp_path):
         np.testing.assert_array_equal(back.attributes[name], cloud.attributes[name])
 
 
+def test_las_date_is_the_data_s_not_the_clock_s(tmp_path, monkeypatch):
+    """The header's creation date is the one given (the survey's), else today, else the day
+    of SOURCE_DATE_EPOCH: the same input gives the same bytes on any day."""
+    import datetime as dt
+
+    import laspy
+
+    from recon3d.io.las import las_date
+
+    cloud = PointCloud(np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]), {"classification": np.array([2, 6], np.uint8)})
+    write_las(cloud, tmp_path / "given.laz", date="2014-03-04")
+    assert las_date(tmp_path / "given.laz") == "2014-03-04"
+    monkeypatch.delenv("SOURCE_DATE_EPOCH", raising=False)
+    write_las(cloud, tmp_path / "today.laz")
+    assert laspy.open(tmp_path / "today.laz").header.creation_date == dt.datetime.now(dt.timezone.utc).date()
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    write_las(cloud, tmp_path / "a.laz")
+    write_las(cloud, tmp_path / "b.laz")
+    assert las_date(tmp_path / "a.laz") == "2023-11-14"
+    assert (tmp_path / "a.laz").read_bytes() == (tmp_path / "b.laz").read_bytes()
+
+
 def test_corrupt_truncated_and_empty_las(tmp_path):
     data = shared(IGN).read_bytes()
     bad = tmp_path / "truncated.laz"

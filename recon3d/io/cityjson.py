@@ -32,7 +32,6 @@ import datetime as _dt
 import json
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +39,7 @@ import numpy as np
 import pyproj
 
 from recon3d.core.city import Building, CityModel, Solid
+from recon3d.core.dates import today
 from recon3d.core.geo import LocalFrame, crs_authority, crs_name, crs_units
 from recon3d.errors import CRSError
 from recon3d.io import atomic_path
@@ -362,7 +362,7 @@ def _metadata(
     """The CityJSON ``metadata`` object (only the six properties the spec allows)."""
     meta: dict[str, Any] = {
         "title": "recon3d buildings",
-        "referenceDate": city.metadata.get("referenceDate") or _today(),
+        "referenceDate": city.metadata.get("referenceDate") or today(),
     }
     meta.update(_user_metadata(extra or {}))
     url = crs_url(city.crs)
@@ -373,14 +373,6 @@ def _metadata(
         lo, hi = world.min(axis=0), world.max(axis=0)
         meta["geographicalExtent"] = [float(round(v, 6)) for v in (*lo, *hi)]
     return meta
-
-
-def _today() -> str:
-    """Today's date, or that of ``SOURCE_DATE_EPOCH`` (reproducible builds) when set."""
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    if epoch and epoch.strip().isdigit():
-        return _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc).date().isoformat()
-    return _dt.date.today().isoformat()
 
 
 def _user_metadata(extra: dict) -> dict[str, Any]:

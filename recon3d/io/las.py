@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 import pyproj
 from laspy.vlrs.known import WktCoordinateSystemVlr
 
+from recon3d.core.dates import today
 from recon3d.core.geo import check_area_of_use, crs_name
 from recon3d.core.pointcloud import PointCloud
 from recon3d.errors import CRSError, InputError
@@ -196,13 +198,14 @@ def las_wkt(crs: pyproj.CRS) -> str:
     return wkt or crs.to_wkt()
 
 
-def write_las(cloud: PointCloud, path: str | Path) -> None:
+def write_las(cloud: PointCloud, path: str | Path, date: str | None = None) -> None:
     """Write a cloud as LAS 1.4 (LAZ when the suffix is .laz), CRS as WKT in the header
     (:func:`las_wkt`).
 
-    Point format 6 without colour, 7 with RGB, 8 with RGB and NIR.
+    Point format 6 without colour, 7 with RGB, 8 with RGB and NIR; ``date`` as for
+    :class:`LasStreamWriter`.
     """
-    with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.xyz.min(axis=0)) as writer:
+    with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.xyz.min(axis=0), date) as writer:
         writer.write(cloud)
 
 
@@ -221,11 +224,16 @@ class LasStreamWriter:
         The attributes every part carries (the point format follows from them).
     mins : (3,) float
         Lowest corner of all the points (the header's offsets).
+    date : str, optional
+        ISO date for the header's creation date: the data's date, so that the same input
+        gives the same bytes on any day (default :func:`~recon3d.core.dates.today`).
     """
 
-    def __init__(self, path: str | Path, crs: pyproj.CRS | None, names: list[str], mins: np.ndarray) -> None:
+    def __init__(self, path: str | Path, crs: pyproj.CRS | None, names: list[str], mins: np.ndarray,
+                 date: str | None = None) -> None:
         fmt = 8 if "nir" in names and "red" in names else 7 if "red" in names else 6
         header = laspy.LasHeader(point_format=fmt, version="1.4")
+        header.creation_date = _dt.date.fromisoformat(date or today())
         header.offsets = np.floor(np.asarray(mins, np.float64))
         header.scales = np.array([0.001, 0.001, 0.001])
         if crs is not None:

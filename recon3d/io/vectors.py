@@ -160,11 +160,11 @@ def write_features(
 @contextlib.contextmanager
 def _gdal_date(date: str | None):
     """GDAL's ``OGR_CURRENT_DATE`` (the GeoPackage ``last_change``) set to ``date`` at midnight UTC."""
-    from recon3d.io.cityjson import _today
+    from recon3d.core.dates import today
 
     key = "OGR_CURRENT_DATE"
     before = pyogrio.get_gdal_config_option(key)
-    pyogrio.set_gdal_config_options({key: f"{date or _today()}T00:00:00.000Z"})
+    pyogrio.set_gdal_config_options({key: f"{date or today()}T00:00:00.000Z"})
     try:
         yield
     finally:

@@ -62,13 +62,13 @@ def write_cloud(r: Run, path: Path) -> None:
     """cloud.laz: every point once with recon3d's classes (ground 2, vegetation 5, building
     6, other 1, noise 7: stereo points guessed over hidden ground), the tiles' records
     one after the other in their Morton order, so that a survey gives the same file
-    whatever its tiling and however it was delivered."""
+    whatever its tiling and however it was delivered (dated like the city model)."""
     from recon3d.io.las import LasStreamWriter
 
     s = r.source.summary
     with np.load(r.passes["finish"][0]) as data:
         names = [k[2:] for k in data.files if k.startswith("a_")]
-    with LasStreamWriter(path, s.crs, names, s.bounds[0]) as writer:
+    with LasStreamWriter(path, s.crs, names, s.bounds[0], r.city.metadata["referenceDate"]) as writer:
         for tile_path in r.passes["finish"]:
             with np.load(tile_path) as data:
                 writer.write(PointCloud(data["xyz"], {k: data[f"a_{k}"] for k in names}))

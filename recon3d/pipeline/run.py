@@ -39,6 +39,7 @@ from recon3d.buildings.measure import measure_heights
 from recon3d.config import PipelineConfig
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame, crs_units
+from recon3d.core.dates import today
 from recon3d.core.memory import available_memory, require_memory
 from recon3d.core.pointcloud import PointCloud
 from recon3d.core.raster import Raster, grid_for_bounds
@@ -160,6 +161,7 @@ class Run:
     workers: int | None
     progress: Callable[[str], None] | None = None
     keep_points: bool | None = None
+    date: str = field(default_factory=today)  # the products' date when the input holds none
     source: Source = field(default_factory=Source)
     grid: Grid | None = None
     surface: Surface | None = None
@@ -346,8 +348,11 @@ def run(
         if resume:
             notes.append("--resume: no earlier work of this run was found; started afresh")
     (cache / output.FINGERPRINT).write_text(json.dumps(fingerprint, sort_keys=True), encoding="utf-8")
+    started = cache / "started"  # a resumed run keeps the day of the run it takes up
+    date = started.read_text(encoding="utf-8") if adopted and started.is_file() else today()
+    started.write_text(date, encoding="utf-8")
     r = Run(inputs, config, out, work_dir, cache, Executor(default_workers() if workers is None else workers, client),
-            workers, keep_points=keep_points)
+            workers, keep_points=keep_points, date=date)
     r.notes += notes
     if client is not None:
         r.auto["executor"] = {"value": f"dask {scheduler}", "reason": "--scheduler/--dask"}
@@ -801,7 +806,10 @@ def find_buildings(r: Run) -> None:
         raised = detect.building_mask(t.ndsm, ev.share, cfg, u)
         blocks.assign_blocks(buildings, labels, raised, min_shared=u.length(cfg.min_edge))
     # the date of the data, not of the run: the same input gives the same bytes
-    meta = {"referenceDate": s.reference_date} if s.reference_date else {}
+    meta = {"referenceDate": s.reference_date or r.date}
+    if not s.reference_date:
+        r.auto["reference_date"] = {"value": r.date, "reason": "the input holds no date: the day the run started "
+                                    "(SOURCE_DATE_EPOCH sets another)"}
     r.labels = labels
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
 
