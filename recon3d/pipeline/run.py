@@ -921,17 +921,24 @@ def build_solids(r: Run) -> None:
         why = "the Dask cluster's workers"
     r.auto["workers"] = {"value": min(workers, max(len(jobs), 1)), "reason": why}
     done = None if r.progress is None else lambda k: r.progress(f"{k}/{len(jobs)} buildings")
-    from recon3d.quality.roofs import fit_quality, validity_attributes
+    from recon3d.quality.roofs import validity_attributes
 
-    results = r.executor.map(_build_lods, jobs, done=done, workers=workers)
+    # the largest first, so that no worker is left with a big building at the end
+    # (longest processing time first); each result goes back to its building
+    order = sorted(range(len(jobs)), key=lambda k: -len(jobs[k][1]))
+    results = [None] * len(jobs)
+    for k, res in zip(order, r.executor.map(_build_lods, [jobs[k] for k in order], done=done, workers=workers),
+                      strict=True):
+        results[k] = res
     empty = dict(zip((b.id for b in city), _empty_share(r)[1:], strict=False))
-    for b, res, job in zip(built, results, jobs, strict=True):
+    for b, (res, fit) in zip(built, results, strict=True):
         b.solids.update(res.solids)
         b.status, b.reason = res.status, res.reason
         b.attributes.update(roof_type=res.roof_type, roof_planes=len(res.planes))
         if np.isfinite(res.roof_rms):
             b.attributes["roof_point_rms_m"] = round(float(res.roof_rms) * u.vertical, 3)
-        b.attributes.update(fit_quality(b, job[1], city.frame, u, empty.get(b.id, 0.0)))
+        fit["footprint_empty_share"] = round(float(empty.get(b.id, 0.0)), 3)
+        b.attributes.update(fit)
         b.attributes.update(validity_attributes(res.validity))
     failed = [b.id for b in city if not b.solids]
     if failed:
@@ -984,10 +991,14 @@ def _empty_share(r: Run) -> np.ndarray:
     return empty / np.maximum(cells, 1)
 
 
-def _build_lods(job: tuple) -> lod.LodResult:
-    """One building's solids (a worker process runs this for :func:`build_solids`)."""
+def _build_lods(job: tuple) -> tuple[lod.LodResult, dict]:
+    """One building's solids, and how well they explain its points (:func:`~recon3d.quality.roofs.fit_quality`,
+    but for the footprint's empty share): a worker process runs this for :func:`build_solids`."""
+    from recon3d.quality.roofs import fit_quality
+
     poly, pts, ground_z, roof_z, frame, config, units = job
-    return lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
+    res = lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
+    return res, fit_quality(Building("", poly, ground_z, roof_z, solids=dict(res.solids)), pts, frame, units, 0.0)
 
 
 def rasterize_model(r: Run) -> None:
