@@ -499,12 +499,12 @@ def test_per_buildingfit_quality(delft_run):
     pts = s.cloud.xyz[~s.is_ground & ~s.vegetation]
     pts = pts[shapely.contains_xy(b.footprint, pts[:, 0], pts[:, 1])]
     pts = pts[pts[:, 2] > b.ground_z + min(1.0, 0.5 * (b.roof_z - b.ground_z))]
-    clean = fit_quality(b, pts, s.city.frame, s.units, 0.0)
+    clean = fit_quality(b, pts, s.city.frame, s.units)
     assert clean["roof_points_per_m2"] == pytest.approx(len(pts) / b.footprint.area, rel=1e-3)
     lifted = pts.copy()
     picked = np.random.default_rng(0).random(len(pts)) < 0.3
     lifted[picked, 2] += 3.0
-    off = fit_quality(b, lifted, s.city.frame, s.units, 0.0)
+    off = fit_quality(b, lifted, s.city.frame, s.units)
     assert off["roof_points_off_1m_share"] - clean["roof_points_off_1m_share"] == pytest.approx(picked.mean(), abs=0.05)
     # the RMS to each LoD: LoD2.2 follows the roof far better than the flat LoD1, and
     # 30 % of the points 3 m up add about 0.3 * 3^2 to its mean square

@@ -159,9 +159,9 @@ class Run:
     cache: Path
     executor: Executor
     workers: int | None
+    date: str  # the products' date when the input holds none: the day the run started
     progress: Callable[[str], None] | None = None
     keep_points: bool | None = None
-    date: str = field(default_factory=today)  # the products' date when the input holds none
     source: Source = field(default_factory=Source)
     grid: Grid | None = None
     surface: Surface | None = None
@@ -937,8 +937,8 @@ def build_solids(r: Run) -> None:
         b.attributes.update(roof_type=res.roof_type, roof_planes=len(res.planes))
         if np.isfinite(res.roof_rms):
             b.attributes["roof_point_rms_m"] = round(float(res.roof_rms) * u.vertical, 3)
-        fit["footprint_empty_share"] = round(float(empty.get(b.id, 0.0)), 3)
-        b.attributes.update(fit)
+        # the share of the footprint's cells without a point, as roofer reports it
+        b.attributes.update({"footprint_empty_share": round(float(empty.get(b.id, 0.0)), 3), **fit})
         b.attributes.update(validity_attributes(res.validity))
     failed = [b.id for b in city if not b.solids]
     if failed:
@@ -992,13 +992,13 @@ def _empty_share(r: Run) -> np.ndarray:
 
 
 def _build_lods(job: tuple) -> tuple[lod.LodResult, dict]:
-    """One building's solids, and how well they explain its points (:func:`~recon3d.quality.roofs.fit_quality`,
-    but for the footprint's empty share): a worker process runs this for :func:`build_solids`."""
+    """One building's solids, and how well they explain its points (:func:`~recon3d.quality.roofs.fit_quality`):
+    a worker process runs this for :func:`build_solids`."""
     from recon3d.quality.roofs import fit_quality
 
     poly, pts, ground_z, roof_z, frame, config, units = job
     res = lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
-    return res, fit_quality(Building("", poly, ground_z, roof_z, solids=dict(res.solids)), pts, frame, units, 0.0)
+    return res, fit_quality(Building("", poly, ground_z, roof_z, solids=dict(res.solids)), pts, frame, units)
 
 
 def rasterize_model(r: Run) -> None:

@@ -359,16 +359,15 @@ def compare_roofs(
     return out
 
 
-def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units, empty: float) -> dict:
-    """How well a building's solids explain its points, as roofer reports it: the
-    share of its footprint's cells without a point (``empty``), its roof point density,
+def fit_quality(b: Building, points: np.ndarray, frame: LocalFrame, u: Units) -> dict:
+    """How well a building's solids explain its points, as roofer reports it: its roof point density,
     the RMS of its roof points to each LoD's roof (``roof_point_rms_lod22_m`` ..., all
     points, vertical distances) and the share of them more than 1 m from the best one.
 
     ``points`` are the non-ground, non-vegetation points of the footprint's bounding
     box, (n, 3) world coordinates; those inside the footprint and above its lower part
     (as :func:`~recon3d.buildings.lod.build_lods` takes them) are its roof points."""
-    out = {"footprint_empty_share": round(float(empty), 3)}
+    out: dict = {}
     if b.footprint is not None and len(points):
         inside = points[shapely.contains_xy(b.footprint, points[:, 0], points[:, 1])]
         if np.isfinite(b.ground_z) and np.isfinite(b.roof_z):  # roof points as build_lods takes them
