@@ -2,7 +2,7 @@
 
 import math
 
-from recon3d.pipeline.executor import default_workers, map_ordered
+from recon3d.pipeline.executor import Executor, default_workers, map_ordered
 
 
 def test_map_ordered_keeps_the_order_of_the_jobs():
@@ -70,3 +70,27 @@ def test_cli_with_worker_processes(tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert json.loads((out / "run.json").read_text())["chosen"]["workers"]["value"] == 2
+
+
+_ORDER: list[str] = []
+
+
+def _note_tile(spec, tile, value):
+    _ORDER.append(tile.name)
+    return {"value": value}
+
+
+def test_tile_passes_hand_out_the_largest_tiles_first(tmp_path):
+    """Longest processing time first; the results still come back in the tiles' order."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from recon3d.pipeline.tiling import Tile
+
+    tiles = [Tile((0, k), slice(0, 8), slice(8 * k, 8 * k + 8)) for k in range(4)]
+    spec = SimpleNamespace(folder=tmp_path, summary=SimpleNamespace(count=100))
+    _ORDER.clear()
+    paths = Executor(1).tiles("t", _note_tile, spec, tiles, [(k,) for k in range(4)], sizes=[5, 40, 1, 40])
+    assert _ORDER == ["0_1", "0_3", "0_0", "0_2"]
+    assert [int(np.load(p)["value"]) for p in paths] == [0, 1, 2, 3]

@@ -12,7 +12,8 @@ The module also tells how many CPUs this process may use (affinity and container
 quota); its memory is :mod:`recon3d.core.memory`'s.
 
 Workers are started with the "forkserver" method: forking the pipeline's own process,
-which may hold OpenMP or TBB thread pools, can deadlock a child.
+which may hold OpenMP or TBB thread pools, can deadlock a child. Tile passes hand out
+the largest tiles first.
 """
 
 from __future__ import annotations
@@ -197,8 +198,13 @@ class Executor:
             self._pool = None
 
     def tiles(self, name: str, func: Callable, spec: Any, tiles: list, args: list[tuple], *,
-              progress: Callable[[str], None] | None = None, local: bool = False) -> list[Path]:
+              progress: Callable[[str], None] | None = None, local: bool = False,
+              sizes: list[int] | None = None) -> list[Path]:
         """Run pass ``name`` (``func(spec, tile, *args)``) over every tile not done yet.
+
+        With ``sizes`` (a work measure per tile, such as its points) the largest tiles
+        are handed out first, so that no worker is left with a large one at the end
+        (longest processing time first); the results do not depend on the order.
 
         ``progress`` hears, after each tile, "<name> tile k/n, <rate> M points/s, ETA <s> s"
         (the points counted as the survey's share of the tiles done).
@@ -215,6 +221,8 @@ class Executor:
         """
         paths = [spec.folder / t.name / f"{name}.npz" for t in tiles]
         todo = [i for i, p in enumerate(paths) if not p.exists()]
+        if sizes is not None:
+            todo.sort(key=lambda i: -sizes[i])
         jobs = [(func, name, spec, tiles[i], args[i]) for i in todo]
         start, total = time.perf_counter(), len(jobs)
         points = spec.summary.count * total / max(len(tiles), 1)

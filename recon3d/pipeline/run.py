@@ -79,6 +79,8 @@ class Grid:
         What every tile job shares.
     buffers : dict of str to int
         Cells of points each pass reads around a tile's core.
+    points : list of int
+        Points in each tile's core: the passes hand out the largest tiles first.
     """
 
     transform: Any
@@ -86,6 +88,7 @@ class Grid:
     tiles: list[Tile]
     spec: passes.Spec
     buffers: dict[str, int]
+    points: list[int]
 
     def raster(self, data: np.ndarray, crs, **tags: str) -> Raster:
         return Raster(data, self.transform, crs, dict(tags))
@@ -197,7 +200,8 @@ class Run:
         """Run one pass over every tile (see :meth:`Executor.tiles`)."""
         g = self.grid
         local = isinstance(g.spec.store, MemoryStore) or len(g.tiles) == 1
-        return self.executor.tiles(name, func, g.spec, g.tiles, args, progress=self.progress, local=local)
+        return self.executor.tiles(name, func, g.spec, g.tiles, args, progress=self.progress, local=local,
+                                   sizes=g.points)
 
 
 @dataclass
@@ -540,7 +544,8 @@ def plan(r: Run) -> None:
                    f"the smallest work tile ({BLOCK + 2 * buffer} cells of {res:g} {u.name} a side, buffer included)",
                    "give the run more memory, or fewer workers", source=r.inputs.input_path)
     tile_grid, reason = plan_tiles(shape, buffer, density, budget=budget, size=size)
-    tiles = tile_grid.tiles(_occupied_blocks(r, transform, shape))
+    per_block = _block_points(r, transform, shape)
+    tiles = tile_grid.tiles(per_block > 0)
     r.auto["tiles"] = {"size": {"value": round(tile_grid.size * res, 3), "unit": u.name, "cells": tile_grid.size,
                                 "reason": reason},
                        "count": len(tiles),
@@ -549,16 +554,20 @@ def plan(r: Run) -> None:
                                             "a tile's edge of any per-point rule"}}
     spec = passes.Spec(s.store, transform, shape, r.cache / f"tiles-{tile_grid.size}", cfg, u, s.summary,
                        r.stereo)
-    r.grid = Grid(transform, shape, tiles, spec, buffers)
+    per = tile_grid.size // BLOCK
+    points = [int(per_block[t.key[0] * per:(t.key[0] + 1) * per, t.key[1] * per:(t.key[1] + 1) * per].sum())
+              for t in tiles]
+    r.grid = Grid(transform, shape, tiles, spec, buffers, points)
 
 
-def _occupied_blocks(r: Run, transform, shape) -> np.ndarray:
-    """(rows, cols) bool of blocks holding points (tiles without any are skipped)."""
-    out = np.zeros((-(-shape[0] // BLOCK), -(-shape[1] // BLOCK)), bool)
+def _block_points(r: Run, transform, shape) -> np.ndarray:
+    """(rows, cols) int64 points in each block (tiles without any are skipped)."""
+    blocks = (-(-shape[0] // BLOCK), -(-shape[1] // BLOCK))
+    out = np.zeros(blocks[0] * blocks[1], np.int64)
     for cloud in r.source.store.chunks():
         row, col = cell_rowcol(cloud.xyz, transform)
-        out[row // BLOCK, col // BLOCK] = True
-    return out
+        out += np.bincount((row // BLOCK) * blocks[1] + col // BLOCK, minlength=out.size)
+    return out.reshape(blocks)
 
 
 def make_dsm(r: Run) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import html
 import json
 import math
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -92,15 +93,22 @@ def write_report(out_dir: str | Path) -> Path:
     except FileNotFoundError as exc:
         raise InputError(f"{out_dir}: not a recon3d output folder ({Path(exc.filename).name} missing)") from None
     buildings = _building_rows(out_dir)
+    # the maps (hillshades and PNG encoding, in numpy and OpenCV, which let go of the
+    # GIL) are drawn side by side: most of the report's time on a large area
+    with ThreadPoolExecutor(FIGURE_THREADS) as pool:
+        surfaces = [pool.submit(_surface_figure, out_dir, run, *spec) for spec in SURFACES]
+        ortho = pool.submit(_ortho_section, out_dir, run, report.get("ortho"))
+        buildings_map = pool.submit(_buildings_section, out_dir, run, report, buildings)
+        maps_html = "".join(f.result() for f in surfaces), ortho.result(), buildings_map.result()
     sections = [
         ("warnings", "Warnings and notes", _warnings_section(run, report)),
         ("accuracy", "Accuracy", _accuracy_section(report.get("accuracy", []))),
         ("ground", "Ground filter", _ground_section(report.get("ground_filter"))),
         ("detection", "Building detection", _detection_section(report)),
         ("stereo", "Stereo", _stereo_section(run.get("chosen", {}).get("stereo"))),
-        ("surfaces", "Surfaces", _surfaces_section(out_dir, run)),
-        ("ortho", "Orthophoto and image check", _ortho_section(out_dir, run, report.get("ortho"))),
-        ("buildings", "Buildings", _buildings_section(out_dir, run, report, buildings)),
+        ("surfaces", "Surfaces", maps_html[0]),
+        ("ortho", "Orthophoto and image check", maps_html[1]),
+        ("buildings", "Buildings", maps_html[2]),
         ("changes", "Changes", _changes_section(report.get("changes"))),
         ("timings", "Timings", _timings_section(run)),
         ("parameters", "Parameters", _parameters_section(run)),
@@ -445,26 +453,30 @@ def _bounds(r) -> tuple[float, float, float, float]:
     return min(xs), min(ys), max(xs), max(ys)
 
 
-def _surfaces_section(out_dir: Path, run: dict) -> str:
-    """DSM, DTM (each tinted over its own 1-99 % height range) and nDSM (from 0)."""
+#: The surface maps: product, colour bar title, colour ramp, caption.
+SURFACES = (
+    ("dsm", "DSM height (m)", "terrain", "DSM: the highest surface (roofs, trees, ground). "),
+    ("dtm", "DTM height (m)", "terrain", "DTM: the bare ground. "),
+    ("ndsm", "height above ground (m)", "height", "nDSM: DSM minus DTM. "),
+)
+
+#: Maps drawn at once.
+FIGURE_THREADS = 4
+
+
+def _surface_figure(out_dir: Path, run: dict, name: str, title: str, cmap: str, caption: str) -> str:
+    """One surface map: DSM and DTM tinted over their own 1-99 % height range, nDSM from 0."""
     note = f"Hillshade from the north-west, tinted by height; {maps.NODATA_NOTE}."
-    figures = []
-    for name, title, cmap, caption in (
-        ("dsm", "DSM height (m)", "terrain", "DSM: the highest surface (roofs, trees, ground). "),
-        ("dtm", "DTM height (m)", "terrain", "DTM: the bare ground. "),
-        ("ndsm", "height above ground (m)", "height", "nDSM: DSM minus DTM. "),
-    ):
-        path = out_dir / f"{name}.tif"
-        if not path.exists():
-            continue
-        value_range = None
-        if cmap == "height":
-            z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
-            top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
-            value_range = (0.0, max(top, 1.0))
-        figures.append(f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
-                       + _raster_figure(path, run, title, cmap, caption + note, value_range))
-    return "".join(figures)
+    path = out_dir / f"{name}.tif"
+    if not path.exists():
+        return ""
+    value_range = None
+    if cmap == "height":
+        z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
+        top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
+        value_range = (0.0, max(top, 1.0))
+    return (f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
+            + _raster_figure(path, run, title, cmap, caption + note, value_range))
 
 
 def _ortho_section(out_dir: Path, run: dict, o: dict | None) -> str:
