@@ -99,16 +99,15 @@ def write_report(out_dir: str | Path) -> Path:
         surfaces = [pool.submit(_surface_figure, out_dir, run, *spec) for spec in SURFACES]
         ortho = pool.submit(_ortho_section, out_dir, run, report.get("ortho"))
         buildings_map = pool.submit(_buildings_section, out_dir, run, report, buildings)
-        maps_html = "".join(f.result() for f in surfaces), ortho.result(), buildings_map.result()
     sections = [
         ("warnings", "Warnings and notes", _warnings_section(run, report)),
         ("accuracy", "Accuracy", _accuracy_section(report.get("accuracy", []))),
         ("ground", "Ground filter", _ground_section(report.get("ground_filter"))),
         ("detection", "Building detection", _detection_section(report)),
         ("stereo", "Stereo", _stereo_section(run.get("chosen", {}).get("stereo"))),
-        ("surfaces", "Surfaces", maps_html[0]),
-        ("ortho", "Orthophoto and image check", maps_html[1]),
-        ("buildings", "Buildings", maps_html[2]),
+        ("surfaces", "Surfaces", "".join(f.result() for f in surfaces)),
+        ("ortho", "Orthophoto and image check", ortho.result()),
+        ("buildings", "Buildings", buildings_map.result()),
         ("changes", "Changes", _changes_section(report.get("changes"))),
         ("timings", "Timings", _timings_section(run)),
         ("parameters", "Parameters", _parameters_section(run)),
