@@ -694,26 +694,51 @@ class Terminated(SystemExit):
     """SIGTERM, raised in the main thread so that every ``finally`` cleans up."""
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise Terminated(143)
+#: The signals this process received (Ctrl-C, SIGTERM): an interrupted run ends as
+#: interrupted whatever exception the signal turned into on its way out (a Ctrl-C in a
+#: compiled module's import comes out as "ImportError: initialization failed").
+_RECEIVED: list[int] = []
+
+
+def _on_signal(signum, frame) -> None:
+    import signal
+
+    _RECEIVED.append(signum)
+    if signum == signal.SIGTERM:
+        raise Terminated(143)
+    raise KeyboardInterrupt
 
 
 def main() -> None:
     """Console-script entry point: errors as one line (exit 1), Ctrl-C exit 130, SIGTERM 143."""
     import signal
 
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when started ignoring Ctrl-C
+        signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
     try:
         cli(prog_name="recon3d", standalone_mode=False)
-    except click.exceptions.Abort:  # Ctrl-C inside a prompt or click's own handling
-        click.echo("recon3d: interrupted", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("recon3d: interrupted", err=True)
-        sys.exit(130)
-    except Terminated:
-        click.echo("recon3d: interrupted (terminated)", err=True)
-        sys.exit(143)
+    except SystemExit as exc:  # Terminated, or an error's exit 1 that a signal caused
+        if isinstance(exc, Terminated) or (_RECEIVED and exc.code):
+            _interrupted(_RECEIVED[0] if _RECEIVED else signal.SIGTERM)
+        raise
+    except (click.exceptions.Abort, KeyboardInterrupt):  # Abort: Ctrl-C inside a prompt or click's own handling
+        _interrupted(signal.SIGINT)
     except click.exceptions.ClickException as exc:
+        if _RECEIVED:
+            _interrupted(_RECEIVED[0])
         exc.show()
         sys.exit(exc.exit_code)
+    except Exception:
+        if _RECEIVED:
+            _interrupted(_RECEIVED[0])
+        raise
+
+
+def _interrupted(signum: int) -> None:
+    """Say so and leave: exit 130 for Ctrl-C, 143 for SIGTERM."""
+    import signal
+
+    terminated = signum == signal.SIGTERM
+    click.echo("recon3d: interrupted" + (" (terminated)" if terminated else ""), err=True)
+    sys.exit(143 if terminated else 130)

@@ -1,8 +1,14 @@
 """Local worker processes (recon3d.pipeline.executor)."""
 
 import math
+import os
+import signal
+import threading
+import time
 
-from recon3d.pipeline.executor import Executor, default_workers, map_ordered
+import pytest
+
+from recon3d.pipeline.executor import Executor, _signals_held, default_workers, map_ordered
 
 
 def test_map_ordered_keeps_the_order_of_the_jobs():
@@ -20,6 +26,29 @@ def test_done_counts_the_results_as_they_come():
     seen = []
     map_ordered(math.sqrt, [1.0, 4.0, 9.0], workers=2, done=seen.append)
     assert seen == [1, 2, 3]
+
+
+def test_a_failed_job_stops_the_queue_at_once_and_no_thread_fails(monkeypatch):
+    """The pending jobs are dropped, not run; on Python 3.11 the pool's manager thread
+    failed with InvalidStateError when a future was cancelled while it broke the pool."""
+    failures = []
+    monkeypatch.setattr(threading, "excepthook", failures.append)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match="non-negative"):
+        map_ordered(time.sleep, [-1.0, 60.0, 60.0, 60.0], workers=2)  # time.sleep(-1) raises
+    assert time.perf_counter() - start < 30.0  # 180 s if the queue were drained
+    assert failures == []
+
+
+def test_signals_held_while_workers_start_take_effect_after():
+    """Ctrl-C while a pool starts its workers left one half started (a traceback from it)."""
+    reached = False
+    with pytest.raises(KeyboardInterrupt):
+        with _signals_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # a handler runs between bytecodes: it would have run by now
+            reached = True
+    assert reached
 
 
 def test_run_reports_its_stages_and_the_buildings(tmp_path):

@@ -163,6 +163,31 @@ def test_a_signal_ends_the_run_at_once_and_leaves_nothing(tmp_path, sig, code):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_signal_that_surfaces_as_another_error_still_ends_as_interrupted(monkeypatch, capsys):
+    """A signal inside a compiled module's import (Open3D's, on first use) comes out as
+    "ImportError: initialization failed": the run printed a traceback and exited 1."""
+    from recon3d import cli
+
+    def interrupted_import(**kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5.0)
+        except SystemExit:
+            raise ImportError("initialization failed") from None
+
+    before = {k: signal.getsignal(k) for k in (signal.SIGINT, signal.SIGTERM)}
+    monkeypatch.setattr(cli, "cli", interrupted_import)
+    monkeypatch.setattr(cli, "_RECEIVED", [])
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            cli.main()
+    finally:
+        for k, handler in before.items():
+            signal.signal(k, handler)
+    assert exit_.value.code == 143
+    assert "interrupted (terminated)" in capsys.readouterr().err
+
+
 def test_dot_as_output_and_a_parent_without_write_permission(cloud_in_folder, monkeypatch):
     """``-o .`` in the input's folder crashed; a read-only parent failed after the whole run."""
     from recon3d.errors import InputError

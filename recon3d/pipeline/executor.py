@@ -18,10 +18,13 @@ the largest tiles first.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import multiprocessing as mp
 import os
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
@@ -103,17 +106,51 @@ def _pool(workers: int) -> ProcessPoolExecutor:
 
 def _on_pool(pool: ProcessPoolExecutor, func, jobs: list, done) -> list:
     try:
-        return _collect(pool.map(func, jobs, chunksize=1), done)
+        with _signals_held():  # a worker interrupted while it starts prints a traceback
+            futures = [pool.submit(func, job) for job in jobs]
+        return _collect((f.result() for f in futures), done)
     except BaseException:  # Ctrl-C, SIGTERM, an error: stop now, not after every queued job
         _stop(pool)
         raise
 
 
 def _stop(pool: ProcessPoolExecutor) -> None:
-    processes = list(getattr(pool, "_processes", {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
+    """Terminate the workers and wait (briefly) until the pool has failed every pending job.
+
+    No future is cancelled here: the pool's manager thread marks every pending one
+    failed once it sees its workers gone, and on Python 3.11 it fails with
+    ``InvalidStateError`` on a future cancelled meanwhile. Waiting for that thread also
+    keeps it from running on into the interpreter's exit.
+    """
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False)
     for process in processes:
         process.terminate()
+    manager = getattr(pool, "_executor_manager_thread", None)
+    if manager is not None:
+        manager.join(timeout=_STOP_TIMEOUT)
+
+
+#: Seconds the pool's manager thread gets to fail the pending jobs after an interrupt.
+_STOP_TIMEOUT = 10.0
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Ctrl-C and SIGTERM received inside the block take effect as it ends (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    kinds = (signal.SIGINT, signal.SIGTERM)
+    before = {k: signal.signal(k, lambda signum, frame: held.append(signum)) for k in kinds}
+    try:
+        yield
+    finally:
+        for k, handler in before.items():
+            signal.signal(k, handler)
+        for signum in held[:1]:
+            signal.raise_signal(signum)
 
 
 def _collect(results: Iterable[Any], done: Callable[[int], None] | None) -> list[Any]:
