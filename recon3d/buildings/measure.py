@@ -69,9 +69,10 @@ def measure_heights(
             out.roof_z[i] = float(np.percentile(z[valid], percentile))
             out.raised_share[i] = float(np.mean(ndsm[sl][inside][valid] >= min_height))
         out.ground_z[i] = float(np.nanmin(dtm.data[sl][inside])) if inside.any() else np.nan
-    for i, poly in enumerate(footprints):  # outline samples catch footprints thinner than a cell
-        edge = np.asarray(shapely.segmentize(poly.exterior, dsm.resolution).coords)
-        g = dtm.sample(edge[:, 0], edge[:, 1])
-        if np.isfinite(g).any():
-            out.ground_z[i] = float(np.nanmin(np.append(g, out.ground_z[i])))
+    if footprints:  # outline samples catch footprints thinner than a cell
+        edges = [np.asarray(shapely.segmentize(p.exterior, dsm.resolution).coords)[:, :2] for p in footprints]
+        g = dtm.sample(*np.concatenate(edges).T)
+        lowest = np.minimum.reduceat(np.where(np.isfinite(g), g, np.inf), np.cumsum([0] + [len(e) for e in edges[:-1]]))
+        seen = np.isfinite(lowest)
+        out.ground_z[seen] = np.fmin(lowest[seen], out.ground_z[seen])
     return out

@@ -142,12 +142,16 @@ class Raster:
         c0 = np.minimum(np.floor(fc).astype(np.int64), max(cols - 2, 0))
         r1, c1 = np.minimum(r0 + 1, rows - 1), np.minimum(c0 + 1, cols - 1)
         dr, dc = fr - r0, fc - c0
-        d = self.data.astype(np.float64)
+        d = self.data
+
+        def at(r, c):  # the cells in float64, not the whole grid cast (a copy per call)
+            return d[r, c].astype(np.float64)
+
         out = (
-            d[r0, c0] * (1 - dr) * (1 - dc)
-            + d[r0, c1] * (1 - dr) * dc
-            + d[r1, c0] * dr * (1 - dc)
-            + d[r1, c1] * dr * dc
+            at(r0, c0) * (1 - dr) * (1 - dc)
+            + at(r0, c1) * (1 - dr) * dc
+            + at(r1, c0) * dr * (1 - dc)
+            + at(r1, c1) * dr * dc
         )
         inside = (
             (x >= self.bounds[0]) & (x <= self.bounds[2]) & (y >= self.bounds[1]) & (y <= self.bounds[3])

@@ -117,15 +117,21 @@ def evaluate_footprints(
         "detected_area": round(a_det * m2, 2),
         "overlap_area": round(tp * m2, 2),
     }
-    ref_share = np.array([p.intersection(det_union).area / p.area for p in ref]) if ref else np.zeros(0)
-    det_share = np.array([p.intersection(ref_union).area / p.area for p in det]) if det else np.zeros(0)
+    out.update(_object_scores(det, ref, overlap, step, max_distance, u))
+    return out
+
+
+def _object_scores(det: list[shapely.Polygon], ref: list[shapely.Polygon], overlap: float, step: float,
+                   max_distance: float, u: Units) -> dict:
+    """The ``object_*``, ``n_*`` and ``outline_*`` scores of :func:`evaluate_footprints`."""
+    ref_share, det_share = _covered_shares(ref, det), _covered_shares(det, ref)
     found = ref_share >= overlap
     correct = det_share >= overlap
     n_found, n_correct = int(found.sum()), int(correct.sum())
     o_comp = round(100.0 * n_found / len(ref), 2) if ref else None
     o_corr = round(100.0 * n_correct / len(det), 2) if det else None
     denom = n_found + (len(ref) - n_found) + (len(det) - n_correct)
-    out.update(
+    out = dict(
         object_completeness=o_comp,
         object_correctness=o_corr,
         object_quality=round(100.0 * n_found / denom, 2) if denom else None,
@@ -135,6 +141,24 @@ def evaluate_footprints(
         n_correct=n_correct,
     )
     out.update(_outline_errors([p for p, f in zip(ref, found, strict=True) if f], det, step, max_distance, u))
+    return out
+
+
+def _covered_shares(polys: list[shapely.Polygon], others: list[shapely.Polygon]) -> np.ndarray:
+    """(n,) share of each polygon's area inside the union of ``others``.
+
+    Each polygon meets the union of the few ``others`` it touches, not the union of all:
+    intersecting every polygon with a whole city's union took time quadratic in its size.
+    """
+    out = np.zeros(len(polys))
+    if not polys or not others:
+        return out
+    tree = shapely.STRtree(others)
+    for i, p in enumerate(polys):
+        near = tree.query(p, predicate="intersects")
+        if len(near):
+            cover = others[near[0]] if len(near) == 1 else shapely.union_all([others[j] for j in near])
+            out[i] = p.intersection(cover).area / p.area
     return out
 
 
@@ -370,8 +394,7 @@ def _objects_from_grid(ref: np.ndarray, transform: Affine, polys: list, min_area
             poly = shapely.geometry.shape(geom)
             if poly.area >= min_area:
                 objects.append(poly)
-    scores = evaluate_footprints(polys, objects, units=u)
-    return {k: v for k, v in scores.items() if k.startswith(("object_", "outline_", "n_"))}
+    return _object_scores(polys, _polygons(objects), 0.5, u.length(0.5), u.length(3.0), u)
 
 
 def vegetation_truth_proxy(
