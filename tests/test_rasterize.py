@@ -82,3 +82,30 @@ def test_model_dsm_against_the_measured_dsm_on_delft(delft_run):
     # like for like, the model scanned at the LiDAR points: measured 0.75 m, unbiased
     scan = next(t for t in delft_run.report["accuracy"] if t["product"] == "model scanned at the points")
     assert scan["n"] == table["n"] and scan["rms"] < 0.8 and abs(scan["mean"]) < 0.05, scan
+
+
+def test_a_window_rendered_from_its_own_buildings_is_the_whole_render_to_the_bit():
+    """The model DSM is rendered tile by tile, each tile from the buildings reaching into
+    it, with the whole city's ray start: every window equals the whole grid's render."""
+    from recon3d.quality.rasterize import ray_top
+
+    frame = LocalFrame((1000.0, 2000.0, 0.0))
+    rng = np.random.default_rng(7)
+    buildings = []
+    for i in range(12):
+        x, y = 1000.0 + rng.uniform(1, 50), 2000.0 + rng.uniform(1, 30)
+        fp = shapely.box(x, y, x + rng.uniform(3, 9), y + rng.uniform(3, 9))
+        top = 5.0 + rng.uniform(3, 25)
+        buildings.append(Building(f"b{i}", fp, 5.0, top, {"1": lod1_solid(fp, 5.0, top, frame)}))
+    city = CityModel(buildings, None, frame)
+    dtm = Raster(rng.uniform(4.0, 6.0, (45, 65)).astype(np.float32), Affine(1.0, 0, 1000.0, 0, -1.0, 2045.0))
+    whole, whole_cover = render(city, dtm)
+    top = ray_top(city)
+    for rows, cols in [(slice(0, 20), slice(0, 30)), (slice(20, 45), slice(30, 65)), (slice(7, 19), slice(11, 60))]:
+        window = dtm.window(rows, cols)
+        x0, y0, x1, y1 = window.bounds
+        near = [b for b in buildings if shapely.box(x0 - 1, y0 - 1, x1 + 1, y1 + 1).intersects(b.footprint)]
+        assert len(near) < len(buildings)
+        part, cover = render(CityModel(near, None, frame), window, top=top)
+        assert np.array_equal(part.data, whole.data[rows, cols])
+        assert np.array_equal(cover, whole_cover[rows, cols])

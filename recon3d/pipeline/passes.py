@@ -1,7 +1,8 @@
 """The per-point work of a run, one tile at a time.
 
 Each pass is a plain function of one tile: it reads the tile's points (its core, or
-its core and buffer) from the run's point store, computes what the stages need from
+its core and buffer) from the run's point store (the model DSM's pass reads none: it
+ray-casts the solids over the tile's cells), computes what the stages need from
 them, and returns it as arrays: rasters on the tile's core cells (the pipeline puts
 them in place on the whole grid, where no other tile writes) and per-point values of
 the core points (kept in the tile's folder for the later passes). Rasters the pass
@@ -238,6 +239,25 @@ def building_points(spec: Spec, tile: Tile, boxes: np.ndarray, which: np.ndarray
         if inside.any():
             out[f"b{i}"], out[f"o{i}"] = xyz[inside], order[inside]
     return out
+
+
+def model_dsm(spec: Spec, tile: Tile, dtm: Raster, model: Any, top: float) -> dict:
+    """The tile's core cells of the model DSM and of the roofs' cover
+    (:func:`recon3d.quality.rasterize.render`).
+
+    Parameters
+    ----------
+    dtm : Raster
+        The core window of the DTM.
+    model : CityModel
+        The buildings with a solid whose footprints reach into the tile.
+    top : float
+        Where the rays start over the whole city (:func:`recon3d.quality.rasterize.ray_top`).
+    """
+    from recon3d.quality.rasterize import render
+
+    model_dsm, cover = render(model, dtm, top=top)
+    return {"model": model_dsm.data, "cover": cover}
 
 
 @dataclass(frozen=True)

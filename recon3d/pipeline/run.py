@@ -145,6 +145,7 @@ class Quality:
 
     model_dsm: Raster | None = None
     roof_cover: np.ndarray | None = None
+    model_top: float = 0.0  # where the rays over the model start (ray_top)
     model_scan: Raster | None = None  # the model scanned at the points, gridded like the DSM
     ortho: Any = None
     ortho_diff: Raster | None = None
@@ -1011,10 +1012,27 @@ def _build_lods(job: tuple) -> tuple[lod.LodResult, dict]:
 
 
 def rasterize_model(r: Run) -> None:
-    """The city model rendered back into a DSM over the DTM, and how much of each cell its roofs cover."""
-    from recon3d.quality.rasterize import render
+    """The city model rendered back into a DSM over the DTM, and how much of each cell its
+    roofs cover: tile by tile, each from the buildings that reach into it."""
+    from recon3d.quality.rasterize import model_tags, ray_top
 
-    r.quality.model_dsm, r.quality.roof_cover = render(r.city, r.terrain.dtm)
+    g, dtm, city = r.grid, r.terrain.dtm, r.city
+    solids = [b for b in city if b.solids]
+    r.quality.model_top = top = ray_top(CityModel(solids, city.crs, city.frame))
+    args = []
+    for tile in g.tiles:
+        near = _touching(solids, g.spec.bounds(tile.rows, tile.cols), margin=g.transform.a)
+        args.append((dtm.window(tile.rows, tile.cols), CityModel(near, city.crs, city.frame), top))
+    paths = r.tiles("model_dsm", passes.model_dsm, args)
+    r.quality.model_dsm = dtm.like(g.place(paths, "model"), **model_tags())
+    r.quality.roof_cover = g.place(paths, "cover", fill=0.0)
+
+
+def _touching(buildings: list[Building], box: tuple, *, margin: float = 0.0) -> list[Building]:
+    """The buildings whose footprints reach into ``box`` (xmin, ymin, xmax, ymax) widened by ``margin``."""
+    x0, y0, x1, y1 = box
+    box = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
+    return [b for b in buildings if _overlaps(b.footprint.bounds, box)]
 
 
 #: Height (m) below the highest surface on the same image ray still counted as seen in an orthophoto.
@@ -1166,8 +1184,7 @@ def _finish_shared(r: Run) -> tuple:
     with_solid = np.array([False] + [bool(b.solids) for b in r.city])
     depth = footprint_depth(r.labels, r.grid.transform.a)
     roofs = CityModel(with_roofs, r.city.crs, r.city.frame)
-    model = CityModel([b for b in r.city if b.solids], r.city.crs, r.city.frame)
-    return with_roofs, with_solid, depth, ray_top(roofs, "2.2"), ray_top(model)
+    return with_roofs, with_solid, depth, ray_top(roofs, "2.2"), r.quality.model_top
 
 
 def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Finish:
@@ -1178,7 +1195,7 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
     box = g.spec.bounds(rows, cols)
 
     def touching(buildings):
-        keep = [b for b in buildings if b.solids and _overlaps(b.footprint.bounds, box)]
+        keep = [b for b in _touching(buildings, box) if b.solids]
         return CityModel(keep, r.city.crs, r.city.frame) if keep else None
 
     plane = r.evidence.plane_tolerance

@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "ray_top", "render", "surface_at"]
+__all__ = ["model_dsm", "model_tags", "ray_top", "render", "surface_at"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -36,8 +36,13 @@ def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: 
     return render(city, dtm, lod=lod, samples=samples)[0]
 
 
-def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> tuple[Raster, np.ndarray]:
+def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3,
+           top: float | None = None) -> tuple[Raster, np.ndarray]:
     """:func:`model_dsm` and, from the same rays, how much of each cell the roofs cover.
+
+    ``dtm`` may be a window of a larger grid, and ``city`` the buildings over it: with
+    the whole city's ``top`` (:func:`ray_top`) each cell gets the heights the whole
+    city gives it, to the last bit.
 
     Returns
     -------
@@ -47,12 +52,17 @@ def render(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int
         Share of each cell's ``samples`` x ``samples`` rays that hit a building solid:
         1 wholly on roofs, 0 off the buildings, in between a cell that a wall crosses.
     """
-    highest, cover = _lattice(city, dtm, lod, samples)
+    highest, cover = _lattice(city, dtm, lod, samples, top)
     out = dtm.data.astype(np.float64).copy()
     hit = np.isfinite(highest)
     out[hit] = np.where(np.isfinite(out[hit]), np.maximum(out[hit], highest[hit]), highest[hit])
-    method = f"building solids ray-cast over the DTM, highest of {samples} x {samples} rays per cell"
-    return dtm.like(out, product="model DSM", method=method), cover
+    return dtm.like(out, **model_tags(samples)), cover
+
+
+def model_tags(samples: int = 3) -> dict[str, str]:
+    """The tags of :func:`render`'s model DSM."""
+    return {"product": "model DSM",
+            "method": f"building solids ray-cast over the DTM, highest of {samples} x {samples} rays per cell"}
 
 
 def surface_at(
@@ -127,10 +137,11 @@ class _Scene:
 STRIP_ROWS = 256
 
 
-def _lattice(city: CityModel, grid: Raster, lod: str | None, samples: int) -> tuple[np.ndarray, np.ndarray]:
+def _lattice(city: CityModel, grid: Raster, lod: str | None, samples: int,
+             top: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(highest hit or -inf, share of rays that hit), both (rows, cols), over ``grid``,
     cast :data:`STRIP_ROWS` rows at a time."""
-    scene = _Scene(city, lod)
+    scene = _Scene(city, lod, top)
     highest = np.full(grid.shape, -np.inf)
     hits = np.zeros(grid.shape)
     x, y = grid.cell_centers()
