@@ -371,8 +371,8 @@ def _provider_scores(spec: Spec, tile: Tile, pts: TilePoints, core: np.ndarray, 
         "ground_order": own.order[ground],
         "ground_errors": f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2],
     }
-    cells, valid, building = _reference_cells(spec, tile, pts, f.reference_grid)
-    out.update(reference_cells=cells, reference_valid=valid, reference_building=building)
+    window, valid, building = _reference_cells(spec, tile, pts, f.reference_grid)
+    out.update(reference_window=window, reference_valid=valid, reference_building=building)
     return out
 
 
@@ -381,24 +381,31 @@ REFERENCE_DISTANCE = 1.0
 
 
 def _reference_cells(spec: Spec, tile: Tile, pts: TilePoints, grid: building_quality.ReferenceGrid):
-    """The cells of the provider-class evaluation grid whose centres lie in the tile's core:
-    flat indices, and whether a surface point lies near enough and is of the building class."""
-    cols = grid.shape[1]
+    """The block of the provider-class evaluation grid whose cell centres lie in the tile's
+    core: its (row start, row stop, col start, col stop), and per cell (block-shaped bool)
+    whether a surface point lies near enough and whether it is of the building class."""
     rs, cs = cover(spec.bounds(tile.rows, tile.cols), grid.transform, grid.shape)
+    none = np.zeros(4, np.int64), np.zeros((0, 0), bool), np.zeros((0, 0), bool)
     if rs.stop <= rs.start or cs.stop <= cs.start:
-        return np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, bool)
+        return none
     gx, gy = grid.centres(rs, cs)
-    centres = np.column_stack([gx.ravel(), gy.ravel()])
-    row, col = cell_rowcol(centres, spec.transform)
-    mine = (row >= tile.rows.start) & (row < tile.rows.stop) & (col >= tile.cols.start) & (col < tile.cols.stop)
-    rr, cc = np.meshgrid(np.arange(rs.start, rs.stop), np.arange(cs.start, cs.stop), indexing="ij")
-    cells = (rr.ravel() * cols + cc.ravel())[mine]
+    row, _ = cell_rowcol(np.column_stack([gx[:, 0], gy[:, 0]]), spec.transform)
+    _, col = cell_rowcol(np.column_stack([gx[0], gy[0]]), spec.transform)
+    # a cell's row on the DSM grid follows from its centre's y alone, its column from x
+    rows = np.flatnonzero((row >= tile.rows.start) & (row < tile.rows.stop))
+    cols = np.flatnonzero((col >= tile.cols.start) & (col < tile.cols.stop))
+    if not len(rows) or not len(cols):
+        return none
+    block = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    centres = np.column_stack([gx[block].ravel(), gy[block].ravel()])
     seen = building_quality.surface_points(pts.cloud)
     valid, nearest = building_quality.nearest_point(
-        pts.cloud.xyz[seen, :2], centres[mine], spec.units.length(REFERENCE_DISTANCE), order=pts.order[seen])
-    building = np.zeros(len(cells), bool)
+        pts.cloud.xyz[seen, :2], centres, spec.units.length(REFERENCE_DISTANCE), order=pts.order[seen])
+    building = np.zeros(len(centres), bool)
     building[valid] = pts.cloud.classification[seen][nearest[valid]] == ASPRS.BUILDING
-    return cells, valid, building
+    shape = (len(rows), len(cols))
+    window = np.array([rs.start + rows[0], rs.start + rows[-1] + 1, cs.start + cols[0], cs.start + cols[-1] + 1])
+    return window, valid.reshape(shape), building.reshape(shape)
 
 
 def _records(own: TilePoints, point_classes: np.ndarray) -> dict:

@@ -1102,25 +1102,20 @@ def evaluate_products(r: Run) -> None:
                                          [(_finish_args(r, tile, shared, reference_grid),) for tile in g.tiles])
     if summary.provider_classes:
         counts = {k: 0 for k in ("vegetation_counts", "coverage_counts")}
-        order, errors, cells, valid, building = [], [], [], [], []
+        order, errors = [], []
+        valid_grid = np.zeros(reference_grid.shape, bool)  # each tile's block in place
+        ref_grid = np.zeros(reference_grid.shape, bool)
         for path in paths:
             with np.load(path) as data:
                 for k in counts:
                     counts[k] = counts[k] + data[k]
                 order.append(data["ground_order"])
                 errors.append(data["ground_errors"])
-                cells.append(data["reference_cells"])
-                valid.append(data["reference_valid"])
-                building.append(data["reference_building"])
-        rows, cols = reference_grid.shape
-        valid_grid = np.zeros(rows * cols, bool)
-        ref_grid = np.zeros(rows * cols, bool)
-        cells = np.concatenate(cells)
-        valid_grid[cells] = np.concatenate(valid)
-        ref_grid[cells] = np.concatenate(building)
+                r0, r1, c0, c1 = data["reference_window"]
+                valid_grid[r0:r1, c0:c1] = data["reference_valid"]
+                ref_grid[r0:r1, c0:c1] = data["reference_building"]
         area = building_quality.score_against_reference(
-            [b.footprint for b in r.city if b.solids], reference_grid, ref_grid.reshape(rows, cols),
-            valid_grid.reshape(rows, cols), units=u)
+            [b.footprint for b in r.city if b.solids], reference_grid, ref_grid, valid_grid, units=u)
         area.update(building_quality.vegetation_as_building(*(int(v) for v in counts["vegetation_counts"])))
         r.report["buildings_vs_provider_area"] = area
         order, errors = np.concatenate(order), np.concatenate(errors)
