@@ -547,6 +547,8 @@ class Blobs:
     reason : list of str
         Empty for kept blobs, else why the blob is not a building: "small", or
         "vegetation" (a tree crown: rough, or with many vegetation points).
+    mask : (rows, cols) bool
+        The building mask the blobs were cut from (:func:`building_mask`).
     """
 
     labels: np.ndarray
@@ -556,6 +558,7 @@ class Blobs:
     vegetation_share: np.ndarray
     reason: list[str] = field(default_factory=list)
     planar_share: np.ndarray | None = None
+    mask: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
@@ -695,7 +698,7 @@ def find_blobs(
             reason.append("vegetation")
         else:
             reason.append("")
-    blobs = Blobs(labels, cells * res**2, height, smooth_share, veg_share, reason, planar_share)
+    blobs = Blobs(labels, cells * res**2, height, smooth_share, veg_share, reason, planar_share, mask)
     log.info(
         "%d blobs: %d buildings, %d small, %d vegetation",
         n, int(blobs.kept.sum()), reason.count("small"), reason.count("vegetation"),
@@ -746,6 +749,7 @@ def detect_buildings(
     point_density: float | None = None,
     fine: FineSurface | None = None,
     mapper=None,
+    blobs: Blobs | None = None,
 ) -> list[shapely.Polygon]:
     """Footprint polygons of building blobs, largest first.
 
@@ -782,13 +786,17 @@ def detect_buildings(
     mapper : callable, optional
         ``mapper(func, jobs)`` -> ``[func(job) for job in jobs]``, for outlining the blobs
         elsewhere (worker processes); in this process by default.
+    blobs : Blobs, optional
+        The candidates when the caller has found them already (:func:`find_blobs` with
+        the same arguments): their mask serves it too.
 
     Returns
     -------
     list of shapely.Polygon
         Valid polygons, counter-clockwise exteriors.
     """
-    blobs = find_blobs(ndsm, vegetation, config, units, planar=planar, point_density=point_density)
+    if blobs is None:
+        blobs = find_blobs(ndsm, vegetation, config, units, planar=planar, point_density=point_density)
     labels = np.where(np.r_[False, blobs.kept][blobs.labels], blobs.labels, 0)
     transform, res = ndsm.transform, ndsm.resolution
     if fine is None and cloud is not None:

@@ -796,8 +796,9 @@ def find_buildings(r: Run) -> None:
         ndsm = t.ndsm
         if r.stereo == "satellite" and sf.unobserved is not None:  # only where matched
             ndsm = ndsm.like(np.where(sf.unobserved, np.nan, ndsm.data), **ndsm.tags)
-        polygons = detect.detect_buildings(ndsm, ev.share, cfg, u, dtm=t.dtm, planar=ev.planar,
-                                           point_density=ev.density, fine=ev.fine, mapper=_mapper(r))
+        blobs = detect.find_blobs(ndsm, ev.share, cfg, u, planar=ev.planar, point_density=ev.density)
+        polygons = detect.detect_buildings(ndsm, ev.share, cfg, u, dtm=t.dtm, fine=ev.fine, mapper=_mapper(r),
+                                           blobs=blobs)
         if r.stereo == "satellite" and sf.unobserved is not None:
             polygons = _on_observed_ground(r, polygons)
         ids = [f"b{i + 1:04d}" for i in range(len(polygons))]
@@ -813,7 +814,8 @@ def find_buildings(r: Run) -> None:
         attrs[i].update(cells=int(heights.cells[i]), raised_share=round(float(heights.raised_share[i]), 3))
         buildings.append(Building(ids[i], poly, heights.ground_z[i], heights.roof_z[i], attributes=attrs[i]))
     if s.footprints is None:  # parts of a block split at height jumps: Building + BuildingParts
-        raised = detect.building_mask(t.ndsm, ev.share, cfg, u)
+        # the blobs' own mask, unless it was cut to the matched cells (satellite)
+        raised = blobs.mask if ndsm is t.ndsm else detect.building_mask(t.ndsm, ev.share, cfg, u)
         blocks.assign_blocks(buildings, labels, raised, min_shared=u.length(cfg.min_edge))
     # the date of the data, not of the run: the same input gives the same bytes
     meta = {"referenceDate": s.reference_date or r.date}
