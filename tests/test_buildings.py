@@ -514,3 +514,30 @@ def test_per_buildingfit_quality(delft_run):
     grown = off["roof_point_rms_lod22_m"] ** 2 - clean["roof_point_rms_lod22_m"] ** 2
     assert grown == pytest.approx(9.0 * picked.mean(), rel=0.15)
     assert all(b.attributes[f"validity_lod{k}"] == "valid" for b in built for k in (x.replace(".", "") for x in b.solids))
+
+
+def test_refined_labels_are_the_same_whatever_the_strip(monkeypatch):
+    """The fine delineation runs a strip of rows at a time (its memory bounded by the
+    strip): strips of 3, 17 and 256 coarse rows give the labels of one pass over all
+    (with a halo of 1 coarse row instead of 8 they do not)."""
+    from recon3d.buildings import detect
+    from recon3d.config import BuildingsConfig
+    from recon3d.core.geo import Units
+    from recon3d.core.raster import Raster
+
+    rng = np.random.default_rng(5)
+    rows, cols = 90, 70
+    labels = np.zeros((rows, cols), np.int32)
+    for k in range(1, 25):  # rectangles, some touching: blocks of several labels
+        r, c = rng.integers(0, rows - 8), rng.integers(0, cols - 8)
+        labels[r:r + rng.integers(3, 12), c:c + rng.integers(3, 12)] = k
+    dtm = Raster(rng.uniform(0.0, 1.0, (rows, cols)).astype(np.float32), Affine(0.5, 0, 0, 0, -0.5, 45.0))
+    z = rng.uniform(0.0, 9.0, (rows * 2, cols * 2))
+    z[rng.random(z.shape) < 0.7] = np.nan  # fine cells without a point: nearest filled ones up to 2 away
+    fine = detect.FineSurface(z, rng.random(z.shape) < 0.1)
+    refined = []
+    for strip in (3, 17, 256):
+        monkeypatch.setattr(detect, "REFINE_STRIP", strip)
+        refined.append(detect.refine_labels(labels, dtm, fine, dtm, BuildingsConfig(), Units())[0])
+    assert (refined[-1] > 0).sum() > 1000
+    assert np.array_equal(refined[0], refined[-1]) and np.array_equal(refined[1], refined[-1])

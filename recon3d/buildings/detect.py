@@ -949,9 +949,31 @@ def refine_labels(
     out = np.zeros((rows * factor, cols * factor), np.int32)
     if not labels.any():
         return out, transform
-    # work in the blobs' bounding box (plus a margin of two coarse cells)
+    # work in the blobs' bounding box (plus a margin of two coarse cells), a strip of
+    # rows at a time: memory bounded by the strip, not the survey
     r0, c0 = np.maximum(np.argwhere(labels > 0).min(axis=0) - 2, 0)
     r1, c1 = np.minimum(np.argwhere(labels > 0).max(axis=0) + 3, (rows, cols))
+    min_height = units.height(min(config.grow_height, config.min_height))
+    for top in range(r0, r1, REFINE_STRIP):
+        bottom = min(top + REFINE_STRIP, r1)
+        lo, hi = max(top - REFINE_HALO, r0), min(bottom + REFINE_HALO, r1)
+        part = _refine_window(labels, fine, dtm, (lo, hi, c0, c1), min_height)
+        out[top * factor:bottom * factor, c0 * factor:c1 * factor] = part[(top - lo) * factor:(bottom - lo) * factor]
+    return out, transform
+
+
+#: Coarse rows :func:`refine_labels` delineates at a time, and the rows it reads beyond
+#: them on either side: a fine cell's answer depends on cells up to 4 coarse cells away
+#: (the zone around a blob, the points near it, the nearest filled cell, the vote).
+REFINE_STRIP = 256
+REFINE_HALO = 8
+
+
+def _refine_window(labels: np.ndarray, fine: FineSurface, dtm: Raster, box: tuple[int, int, int, int],
+                   min_height: float) -> np.ndarray:
+    """:func:`refine_labels` over the coarse cells ``[r0:r1, c0:c1]`` of ``box``: their fine labels."""
+    factor = FINE
+    r0, r1, c0, c1 = box
     lab = labels[r0:r1, c0:c1]
     zone = np.where(lab > 0, lab, ndimage.grey_dilation(lab, size=3))
     coarse = lab.repeat(factor, 0).repeat(factor, 1)
@@ -969,7 +991,7 @@ def refine_labels(
         nr, nc = nr[found], nc[found]
         ground = dtm.data[r0 + nr // factor, c0 + nc // factor].astype(np.float64)
         h = top[nr, nc] - ground
-        up = np.nan_to_num(h, nan=-np.inf) >= units.height(min(config.grow_height, config.min_height))
+        up = np.nan_to_num(h, nan=-np.inf) >= min_height
         up &= ~fine.vegetation[window][nr, nc]
         raised[found] = up
     mask = raised & (zone > 0)
@@ -979,9 +1001,7 @@ def refine_labels(
     mask = (votes >= 4.5) & (zone > 0)
     part = np.where(mask, zone, 0)
     # a blob must not lose its core to a neighbour's ring: coarse cells keep their own label
-    part = np.where(mask & (coarse > 0), coarse, part)
-    out[window] = part
-    return out, transform
+    return np.where(mask & (coarse > 0), coarse, part)
 
 
 def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid: Raster, gap: float) -> list[shapely.Polygon]:
