@@ -718,20 +718,17 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _on_signal)
     try:
         cli(prog_name="recon3d", standalone_mode=False)
-    except SystemExit as exc:  # Terminated, or an error's exit 1 that a signal caused
-        if isinstance(exc, Terminated) or (_RECEIVED and exc.code):
-            _interrupted(_RECEIVED[0] if _RECEIVED else signal.SIGTERM)
-        raise
-    except (click.exceptions.Abort, KeyboardInterrupt):  # Abort: Ctrl-C inside a prompt or click's own handling
-        _interrupted(signal.SIGINT)
-    except click.exceptions.ClickException as exc:
-        if _RECEIVED:
-            _interrupted(_RECEIVED[0])
-        exc.show()
-        sys.exit(exc.exit_code)
-    except Exception:
-        if _RECEIVED:
-            _interrupted(_RECEIVED[0])
+    except BaseException as exc:
+        # a signal ends the run as interrupted whatever it became on its way out
+        # (click.Abort: Ctrl-C inside a prompt or click's own handling)
+        signum = _RECEIVED[0] if _RECEIVED else None
+        if signum is None and isinstance(exc, (click.exceptions.Abort, KeyboardInterrupt)):
+            signum = signal.SIGINT
+        if signum is not None and not (isinstance(exc, SystemExit) and not exc.code):
+            _interrupted(signum)
+        if isinstance(exc, click.exceptions.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
         raise
 
 

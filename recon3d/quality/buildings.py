@@ -100,8 +100,6 @@ def evaluate_footprints(
         over the found reference objects.
     """
     u = units or Units()
-    step = step if step is not None else u.length(0.5)
-    max_distance = max_distance if max_distance is not None else u.length(3.0)
     det, ref = _polygons(detected), _polygons(reference)
     det_union = shapely.union_all(det) if det else shapely.Polygon()
     ref_union = shapely.union_all(ref) if ref else shapely.Polygon()
@@ -117,13 +115,15 @@ def evaluate_footprints(
         "detected_area": round(a_det * m2, 2),
         "overlap_area": round(tp * m2, 2),
     }
-    out.update(_object_scores(det, ref, overlap, step, max_distance, u))
+    out.update(_object_scores(det, ref, u, overlap, step, max_distance))
     return out
 
 
-def _object_scores(det: list[shapely.Polygon], ref: list[shapely.Polygon], overlap: float, step: float,
-                   max_distance: float, u: Units) -> dict:
-    """The ``object_*``, ``n_*`` and ``outline_*`` scores of :func:`evaluate_footprints`."""
+def _object_scores(det: list[shapely.Polygon], ref: list[shapely.Polygon], u: Units, overlap: float = 0.5,
+                   step: float | None = None, max_distance: float | None = None) -> dict:
+    """The ``object_*``, ``n_*`` and ``outline_*`` scores of :func:`evaluate_footprints` (its defaults)."""
+    step = step if step is not None else u.length(0.5)
+    max_distance = max_distance if max_distance is not None else u.length(3.0)
     ref_share, det_share = _covered_shares(ref, det), _covered_shares(det, ref)
     found = ref_share >= overlap
     correct = det_share >= overlap
@@ -394,7 +394,7 @@ def _objects_from_grid(ref: np.ndarray, transform: Affine, polys: list, min_area
             poly = shapely.geometry.shape(geom)
             if poly.area >= min_area:
                 objects.append(poly)
-    return _object_scores(polys, _polygons(objects), 0.5, u.length(0.5), u.length(3.0), u)
+    return _object_scores(polys, _polygons(objects), u)
 
 
 def vegetation_truth_proxy(

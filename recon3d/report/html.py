@@ -429,14 +429,18 @@ def _metres_per_unit(run: dict) -> tuple[float, float]:
     return float(u.get("metres_per_unit") or 1.0), float(u.get("vertical_metres_per_unit") or 1.0)
 
 
-def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str,
-                   value_range: tuple[float, float] | None = None) -> str:
+def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str, *, from_zero: bool = False) -> str:
+    """A map of a height raster, tinted over its 1-99 % range, or from 0 to its 99.5 %
+    height (at least 1 m) with ``from_zero``."""
     r = read_raster(path)
     h_unit, v_unit = _metres_per_unit(run)
     z = r.data.astype(float) * v_unit  # heights shown in metres
     if not np.isfinite(z).any():
         return f"<p class=small>{title}: no data.</p>"
-    lo, hi = value_range or tuple(np.nanpercentile(z, [1, 99]))
+    if from_zero:
+        lo, hi = 0.0, max(float(np.nanpercentile(z, 99.5)), 1.0)
+    else:
+        lo, hi = tuple(np.nanpercentile(z, [1, 99]))
     bounds = _bounds(r)
     frame = maps.MapFrame.fit(bounds)
     rgba = maps.shaded_relief(z, r.resolution * h_unit, lo, hi, cmap, maps.resample_factor(z.shape, frame))
@@ -470,13 +474,8 @@ def _surface_figure(out_dir: Path, run: dict, name: str, title: str, cmap: str, 
     path = out_dir / f"{name}.tif"
     if not path.exists():
         return ""
-    value_range = None
-    if cmap == "height":
-        z = read_raster(path).data.astype(float) * _metres_per_unit(run)[1]
-        top = float(np.nanpercentile(z, 99.5)) if np.isfinite(z).any() else 1.0
-        value_range = (0.0, max(top, 1.0))
     return (f"<h3>{name.upper() if name != 'ndsm' else 'nDSM'}</h3>"
-            + _raster_figure(path, run, title, cmap, caption + note, value_range))
+            + _raster_figure(path, run, title, cmap, caption + note, from_zero=cmap == "height"))
 
 
 def _ortho_section(out_dir: Path, run: dict, o: dict | None) -> str:
