@@ -19,7 +19,14 @@ from shapely.geometry import box
 from recon3d.cli import cli
 from recon3d.core.city import Building, CityModel, Solid
 from recon3d.core.geo import LocalFrame
-from recon3d.core.mesh import newell_normal, points_on_segments, solid_mesh, split_ring_edges
+from recon3d.core.mesh import (
+    newell_normal,
+    points_on_segments,
+    solid_mesh,
+    split_ring_edges,
+    triangulate_surface,
+    triangulate_surfaces,
+)
 from recon3d.io.cityjson import read_cityjson
 from recon3d.io.gltf import write_glb
 from recon3d.io.obj import write_obj
@@ -176,6 +183,34 @@ def test_flat_and_open_solids_give_no_or_open_meshes():
     open_box = Solid(cube.vertices, cube.surfaces[1:], cube.semantics[1:])  # no ground
     mesh = open_box.to_trimesh()
     assert not mesh.is_watertight and manifold_status(mesh.vertices, mesh.faces) != "NoError"
+
+
+def test_surfaces_triangulated_together_are_each_surface_triangulated_alone():
+    """The batched triangulation repairs only the surfaces that need it, each as alone."""
+    solids = [stepped_box(), split_wall_box(), courtyard_with_collinear_vertices()]
+    for solid in solids:
+        surfaces = split_ring_edges(solid.vertices, [r for s in solid.surfaces for r in s], 1e-3)
+        rings = iter(surfaces)
+        surfaces = [[next(rings) for _ in s] for s in solid.surfaces] + [[]]  # and one without rings
+        faces, surface = triangulate_surfaces(solid.vertices, surfaces)
+        alone = [triangulate_surface(solid.vertices, s) if s else np.zeros((0, 3), np.int64) for s in surfaces]
+        np.testing.assert_array_equal(faces, np.concatenate(alone))
+        np.testing.assert_array_equal(surface, np.repeat(np.arange(len(alone)), [len(t) for t in alone]))
+        assert any(len(np.unique(t)) > 3 for t in alone)  # repaired surfaces are among them
+
+
+def test_a_wall_at_45_degrees_is_triangulated_the_same_wherever_it_stands():
+    """|nx| and |ny| of its normal are equal up to rounding, which depends on where the
+    wall stands and on numpy's summation kernel: the projection plane (and so earcut's
+    triangles) must not follow the last bit."""
+    wall = np.array([[0, 0, 0], [3, -3, 0], [3, -3, 4], [1.5, -1.5, 3], [0, 0, 4]], float)
+    results = set()
+    for ox in np.arange(0.1, 3, 0.37):
+        for oy in np.arange(0.2, 3, 0.41):
+            tri = triangulate_surface(wall + [ox, oy, 0.3], [np.arange(5)])
+            assert len(tri) == 3
+            results.add(tri.tobytes())
+    assert len(results) == 1
 
 
 # --------------------------------------------------------------------------- GLB and OBJ of constructed solids

@@ -40,6 +40,7 @@ __all__ = [
     "solid_mesh",
     "split_ring_edges",
     "triangulate_surface",
+    "triangulate_surfaces",
 ]
 
 #: Vertices closer than this (CRS units) are one vertex, and a vertex closer than
@@ -214,32 +215,113 @@ def triangulate_surface(vertices: np.ndarray, rings: list[np.ndarray]) -> np.nda
     (m, 3) int64
         Indices into ``vertices``; empty for a ring without area.
     """
-    normal = newell_normal(vertices[rings[0]])
-    if not np.any(normal):
-        return np.zeros((0, 3), np.int64)
-    drop = int(np.argmax(np.abs(normal)))
-    index = np.concatenate(rings).astype(np.int64)
-    xy = vertices[index][:, [a for a in range(3) if a != drop]]
-    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
-    tri = mapbox_earcut.triangulate_float64(xy, ends).reshape(-1, 3).astype(np.int64)
-    if not len(tri):
-        return np.zeros((0, 3), np.int64)
-    outer = normal[drop] * (-1.0 if drop == 1 else 1.0)  # twice the outer ring's area in (x, y), (y, z) or (x, z)
-    if np.sign(_area2(xy[tri]).sum()) != np.sign(outer):
-        tri = tri[:, ::-1]
-    tol = 1e-9 * max(float(np.ptp(xy, axis=0).max()), 1.0)
-    flat = _flat(xy[tri], tol)
+    return triangulate_surfaces(vertices, [rings])[0]
+
+
+def triangulate_surfaces(vertices: np.ndarray, surfaces: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`triangulate_surface` of many surfaces at once.
+
+    Only the earcut call runs per surface; the projection, the orientation and the
+    checks for folds and dropped vertices run on all surfaces together (a solid has
+    hundreds of small walls, and per-surface numpy calls cost more than earcut).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float
+    surfaces : list of list of (k,) int arrays
+        Outer ring then holes per surface; a surface without rings has no triangles.
+
+    Returns
+    -------
+    faces : (m, 3) int64
+        Indices into ``vertices``, grouped by surface in the order of ``surfaces``.
+    surface : (m,) int64
+        Index of each triangle's surface.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    live = np.array([s for s, rings in enumerate(surfaces) if rings], np.int64)
+    if not len(live):
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    rings = [np.asarray(r, np.int64) for s in live for r in surfaces[s]]
+    ring_count = np.array([len(surfaces[s]) for s in live])
+    sizes = np.array([len(r) for r in rings])
+    index = np.concatenate(rings)
+    row_surface = np.repeat(np.repeat(np.arange(len(live)), ring_count), sizes)  # live position of each ring row
+    ring_start = np.r_[0, np.cumsum(sizes)[:-1]]
+    outer_ring = np.r_[0, np.cumsum(ring_count)[:-1]]
+    row_bounds = np.r_[ring_start[outer_ring], len(index)]
+    normal = _newell_normals(vertices, index, ring_start[outer_ring], sizes[outer_ring])
+    # the plane of the largest projection; of two equal ones (a wall at 45 degrees) the
+    # first, whatever the rounding of the sums (which differs between numpy's kernels)
+    size = np.abs(normal)
+    drop = np.argmax(size >= (1.0 - 1e-9) * size.max(axis=1, keepdims=True), axis=1)
+    xy = np.take_along_axis(vertices[index], np.array([[1, 2], [0, 2], [0, 1]])[drop][row_surface], axis=1)
+    ends = (np.cumsum(sizes) - np.repeat(row_bounds[:-1], ring_count)).astype(np.uint32)
+    ring_bounds = np.r_[outer_ring, len(rings)]
+    pieces, counts = [], np.zeros(len(live), np.int64)
+    for k in np.flatnonzero(normal.any(axis=1)):
+        a, b = row_bounds[k], row_bounds[k + 1]
+        tri = mapbox_earcut.triangulate_float64(xy[a:b], ends[ring_bounds[k] : ring_bounds[k + 1]])
+        pieces.append(tri.astype(np.int64) + a)
+        counts[k] = len(tri) // 3
+    tri = np.concatenate(pieces).reshape(-1, 3) if pieces else np.zeros((0, 3), np.int64)
+    tri_surface = np.repeat(np.arange(len(live)), counts)
+    # twice the outer ring's area in (x, y), (y, z) or (x, z)
+    outer = normal[np.arange(len(live)), drop] * np.where(drop == 1, -1.0, 1.0)
+    area = np.bincount(tri_surface, weights=_area2(xy[tri]), minlength=len(live))
+    flip = (np.sign(area) != np.sign(outer))[tri_surface]
+    tri[flip] = tri[flip][:, ::-1]
+    extent = np.maximum.reduceat(xy, row_bounds[:-1], axis=0) - np.minimum.reduceat(xy, row_bounds[:-1], axis=0)
+    tol = 1e-9 * np.maximum(extent.max(axis=1), 1.0)
     used = np.zeros(len(index), bool)
     used[tri] = True
-    if not flat.any() and used.all():
-        return index[tri]  # every ring vertex used, no fold: nothing lies inside an edge
+    folded = np.bincount(tri_surface[_flat(xy[tri], tol[tri_surface])], minlength=len(live)) > 0
+    dropped = np.bincount(row_surface[~used], minlength=len(live)) > 0
+    faces = index[tri]
+    repair = np.flatnonzero((folded | dropped) & (counts > 0))
+    if len(repair):
+        # nothing lies inside an edge elsewhere: every ring vertex used, no fold
+        parts = np.split(faces, np.cumsum(counts)[:-1])
+        for k in repair:
+            a, b = row_bounds[k], row_bounds[k + 1]
+            parts[k] = _unfolded(index[a:b], xy[a:b], tri[tri_surface == k] - a, tol[k])
+            counts[k] = len(parts[k])
+        faces = np.concatenate(parts)
+    return faces, np.repeat(live, counts)
+
+
+def _newell_normals(vertices: np.ndarray, index: np.ndarray, start: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """(s, 3) :func:`newell_normal` of the rings ``index[start[i]:start[i] + size[i]]``."""
+    rows = np.repeat(start - np.r_[0, np.cumsum(size)[:-1]], size) + np.arange(size.sum())
+    p = vertices[index[rows]]
+    nxt = np.arange(1, len(p) + 1)
+    first = np.r_[0, np.cumsum(size)[:-1]]
+    nxt[first + size - 1] = first  # a ring's last edge closes on its first vertex
+    q = p[nxt]
+    return np.add.reduceat((p - q)[:, [1, 2, 0]] * (p + q)[:, [2, 0, 1]], first, axis=0)
+
+
+def _unfolded(index: np.ndarray, xy: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
+    """One surface's earcut triangles without flat folds, split at the ring vertices
+    inside their edges.
+
+    Parameters
+    ----------
+    index : (k,) int64
+        The surface's ring vertices (vertex ids), rings one after the other.
+    xy : (k, 2) float
+        Their projection.
+    tri : (m, 3) int64
+        earcut's triangles, indices into ``index``, oriented.
+    """
     unique, first, inverse = np.unique(index, return_index=True, return_inverse=True)
     tri, xy = inverse[tri], xy[first]  # a vertex twice in the rings (rings touching) is one point
     return unique[_split_on_edges(xy, tri[~_flat(xy[tri], tol)], tol)]
 
 
-def _flat(triangles: np.ndarray, tol: float) -> np.ndarray:
-    """(m,) True for (m, 3, 2) triangles whose height is at most ``tol`` (a corner on the opposite edge).
+def _flat(triangles: np.ndarray, tol) -> np.ndarray:
+    """(m,) True for (m, 3, 2) triangles whose height is at most ``tol`` (a float, or
+    (m,) one per triangle): a corner on the opposite edge.
 
     earcut leaves such triangles over collinear ring vertices; dropping them and
     splitting the neighbour's edge at the vertex gives the same cover, without a fold.
@@ -334,11 +416,8 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     compact = np.zeros(len(vertices), np.int64)
     compact[used] = np.arange(len(used))
     split = iter(split_ring_edges(points, [compact[r] for r in flat], tol))
-    none = np.zeros((0, 3), np.int64)
-    tris = [triangulate_surface(points, [next(split) for _ in rings]) if rings else none for rings in kept]
-    faces = np.concatenate(tris) if tris else none
-    surface = np.repeat(np.arange(len(tris), dtype=np.int64), [len(t) for t in tris])
-    return SolidMesh(points, faces.astype(np.int64), surface)
+    faces, surface = triangulate_surfaces(points, [[next(split) for _ in rings] for rings in kept])
+    return SolidMesh(points, faces, surface)
 
 
 def _welded_rings(label: np.ndarray, surface: list[np.ndarray]) -> list[np.ndarray]:
