@@ -63,3 +63,21 @@ def test_public_names_still_importable():
     assert {"PointCloud", "PipelineConfig", "LocalFrame", "AccuracyReport", "run"} <= set(namespace)
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         recon3d.nope  # noqa: B018
+
+
+def test_open3d_comes_without_its_plotly_viewer_which_still_works_when_called():
+    """Roof segmentation and the model DSM import Open3D in every worker; its plotly
+    viewer (dash, plotly: about 0.65 s) is left out until someone calls it."""
+    code = (
+        "import numpy as np, sys\nfrom recon3d.core.o3d import open3d\no3d = open3d()\n"
+        "assert 'dash' not in sys.modules and 'plotly' not in sys.modules, 'viewer imported'\n"
+        "cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.random.default_rng(0).random((50, 3))))\n"
+        "plane, inliers = cloud.segment_plane(0.01, 3, 50)\nassert len(plane) == 4\n"
+        "assert o3d.t.geometry.RaycastingScene() is not None\n"
+        "assert open3d() is o3d\n"
+        "figure = o3d.visualization.get_plotly_fig([cloud])\n"
+        "assert type(figure).__module__.startswith('plotly'), type(figure)\n"
+        "assert hasattr(sys.modules['open3d.visualization.draw_plotly'], 'Dash')\n"
+    )
+    modules = _modules_after(code)
+    assert "dash" in modules and "open3d" in modules

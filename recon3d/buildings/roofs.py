@@ -452,8 +452,9 @@ _RANSAC_SAMPLE = 1000
 
 def _ransac_planes(xyz, normals, curvature, edges, min_pts, p: RoofParams) -> list[np.ndarray]:
     """Point groups of the planes found by repeated, seeded RANSAC."""
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     previous = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:

@@ -19,8 +19,9 @@ def read_ply(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
 
     Colours become ``red``, ``green``, ``blue`` (uint16, LAS scale 0..65535).
     """
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     path = require_file(path, "point cloud")
     if crs is None:
         raise CRSError(f"{path}: PLY files carry no CRS; give one with --crs")

@@ -101,8 +101,9 @@ class _Scene:
     """The solids of one LoD per building in an Open3D ray-casting scene (local frame)."""
 
     def __init__(self, city: CityModel, lod: str | None, top: float | None = None) -> None:
-        import open3d as o3d
+        from recon3d.core.o3d import open3d
 
+        o3d = open3d()
         meshes = _meshes(city, lod)
         self.scene = None
         if not meshes:
@@ -119,8 +120,9 @@ class _Scene:
 
     def highest(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """(n,) world height of the first hit of a vertical ray from above, -inf where none."""
-        import open3d as o3d
+        from recon3d.core.o3d import open3d
 
+        o3d = open3d()
         if self.scene is None:
             return np.full(np.shape(x), -np.inf)
         rays = np.zeros((np.size(x), 6), np.float32)

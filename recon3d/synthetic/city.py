@@ -809,8 +809,9 @@ class SyntheticCity:
         The single geometry's primitive ids index ``faces`` and the ``face_*`` arrays.
         """
         if self._scene is None:
-            import open3d as o3d
+            from recon3d.core.o3d import open3d
 
+            o3d = open3d()
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(
                 o3d.core.Tensor(self.vertices.astype(np.float32)),
@@ -1005,8 +1006,9 @@ def truth_dsm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) ->
     (rows, cols) float32
         World heights; NaN where no surface is hit (off the terrain).
     """
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     x, y = _cell_centres(transform, shape)
     ox, oy, oz = city.origin
     top = city.vertices[:, 2].max() + 10.0
@@ -1051,8 +1053,9 @@ def truth_disparity(city: SyntheticCity, pair, offset) -> np.ndarray:
     (H, W) float32
         Disparity in pixels (``x_right = x_left - d``); NaN where the ray hits nothing.
     """
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     h, w = pair.left.shape[:2]
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])

@@ -78,8 +78,9 @@ def scan_city(
     -------
     LidarScan
     """
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     rng = np.random.default_rng(seed)
     x0, y0, x1, y1 = area or (0.0, 0.0, city.size, city.size)
     n = max(1, int(round(density * (x1 - x0) * (y1 - y0))))

@@ -480,8 +480,9 @@ def _cast(
     city: SyntheticCity, origins: np.ndarray, dirs: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """First hits of (n, 3) rays: distances (n,) float64 (inf on miss) and triangles (n,) int64."""
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
     hit = city.raycaster().cast_rays(o3d.core.Tensor(rays))
     t = hit["t_hit"].numpy().astype(np.float64)
@@ -500,8 +501,9 @@ def _in_shadow(
     city: SyntheticCity, xyz: np.ndarray, normal: np.ndarray, sun: np.ndarray
 ) -> np.ndarray:
     """(n,) True where the way from a surface point to the sun is blocked."""
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     origins = xyz + 0.02 * normal + 0.02 * sun
     rays = np.concatenate([origins, np.broadcast_to(sun, origins.shape)], axis=1).astype(np.float32)
     return city.raycaster().test_occlusions(o3d.core.Tensor(rays)).numpy().astype(bool)

@@ -41,8 +41,9 @@ def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: i
     Vertical rays at ``samples`` x ``samples`` points spread evenly over each cell from
     edge to edge, cast only where ``cells`` is True (NaN elsewhere).
     """
-    import open3d as o3d
+    from recon3d.core.o3d import open3d
 
+    o3d = open3d()
     rows, cols = np.nonzero(cells)
     t = grid.transform
     off = np.linspace(0.0, 1.0, samples) if samples > 1 else np.array([0.5])
