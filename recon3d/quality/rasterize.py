@@ -89,11 +89,12 @@ def ray_top(city: CityModel, lod: str | None = None) -> float:
 
 
 def _meshes(city: CityModel, lod: str | None) -> list:
+    """The triangles (:class:`~recon3d.core.mesh.SolidMesh`) of one solid per building: ``lod``, else its highest."""
     meshes = []
     for b in city:
         key = lod if lod in b.solids else max(b.solids, default=None, key=float)
         if key is not None:
-            meshes.append(b.solids[key].to_trimesh())
+            meshes.append(b.solids[key].mesh())
     return meshes
 
 

@@ -88,10 +88,9 @@ class RoofPlaneView:
 
 def _roof_triangles(solid: Solid) -> np.ndarray:
     """(m, 3, 3) roof triangles of a solid."""
-    mesh = solid.to_trimesh()
-    sem = np.asarray(mesh.metadata["semantics"])
-    faces = np.asarray(mesh.faces)[sem == "RoofSurface"] if len(sem) else np.zeros((0, 3), int)
-    return np.asarray(mesh.vertices)[faces]
+    vertices, faces, surface = solid.mesh()
+    roof = np.asarray(solid.semantics)[surface] == "RoofSurface" if len(surface) else np.zeros(0, bool)
+    return vertices[faces[roof]]
 
 
 def roof_height_at(solid: Solid, xy: np.ndarray) -> np.ndarray:
@@ -279,11 +278,11 @@ def _plane_z(plane: RoofPlaneView, xy: np.ndarray) -> float:
 
 def solid_volume(solid: Solid) -> float:
     """Volume enclosed by a closed solid (divergence theorem on its triangulation)."""
-    mesh = solid.to_trimesh()
-    if not len(mesh.faces):
+    vertices, faces, _ = solid.mesh()
+    if not len(faces):
         return 0.0
-    v = mesh.vertices - mesh.vertices.mean(axis=0)
-    a, b, c = (v[mesh.faces[:, k]] for k in range(3))
+    v = vertices - vertices.mean(axis=0)
+    a, b, c = (v[faces[:, k]] for k in range(3))
     return float(np.einsum("ij,ij->", a, np.cross(b, c))) / 6.0
 
 
