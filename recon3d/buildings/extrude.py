@@ -149,7 +149,7 @@ def partition_solid(regions, planes, g: float, u) -> Solid:
     directed = {}
     for f, rr in enumerate(rings):
         for r in rr:
-            for a, b in zip(r.tolist(), np.roll(r, -1).tolist(), strict=True):
+            for a, b in _ring_edges(r):
                 if (a, b) in directed:
                     raise LodFailure("invalid_mesh", "two parts overlap along an edge")
                 directed[(a, b)] = f
@@ -208,20 +208,13 @@ def partition_solid(regions, planes, g: float, u) -> Solid:
 
 def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list[list[np.ndarray]]:
     """Neighbouring walls in one vertical plane (within ``tol``) merged into one surface."""
-    from recon3d.core.city import newell_normal
-
     n = len(walls)
-    normals = np.zeros((n, 2))
-    offsets = np.zeros(n)
-    for i, w in enumerate(walls):
-        nv = newell_normal(verts[w])[:2]
-        norm = np.linalg.norm(nv)
-        normals[i] = nv / norm if norm > 0 else 0.0
-        offsets[i] = float(np.mean(verts[w][:, :2] @ normals[i]))
+    normals, offsets = _wall_planes(verts, walls)
     sets = MinRootSets(n)
     owner: dict[tuple[int, int], int] = {}
     for i, w in enumerate(walls):
-        for a, b in zip(w.tolist(), np.roll(w, -1).tolist(), strict=True):
+        ring = w.tolist()
+        for a, b in zip(ring, ring[1:] + ring[:1], strict=True):
             j = owner.get((b, a))
             same = j is not None and normals[i] @ normals[j] > 0.99996
             if same and abs(offsets[i] - offsets[j]) < tol:
@@ -235,11 +228,7 @@ def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list
         if len(members) == 1:
             out.append([walls[members[0]]])
             continue
-        edges = {
-            (a, b)
-            for i in members
-            for a, b in zip(walls[i].tolist(), np.roll(walls[i], -1).tolist(), strict=True)
-        }
+        edges = {(a, b) for i in members for a, b in _ring_edges(walls[i])}
         rim = np.array(sorted(e for e in edges if (e[1], e[0]) not in edges), dtype=np.int64)
         normal = np.append(normals[members[0]], 0.0)
         try:
@@ -247,6 +236,30 @@ def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list
         except LodFailure:
             out += [[walls[i]] for i in members]
     return out
+
+
+def _wall_planes(verts: np.ndarray, walls: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Unit horizontal normals (n, 2) of the walls (their Newell normals' x and y; 0 for
+    a wall without area) and their offsets (n,): the mean of ``xy . normal``. Walls of
+    one vertex count are done together (the same sums as one at a time)."""
+    normals, offsets = np.zeros((len(walls), 2)), np.zeros(len(walls))
+    sizes = np.array([len(w) for w in walls])
+    for k in np.unique(sizes):
+        which = np.flatnonzero(sizes == k)
+        p = verts[np.stack([walls[i] for i in which])]  # (m, k, 3)
+        q = np.roll(p, -1, axis=1)
+        nv = np.einsum("mij,mij->mj", (p - q)[:, :, [1, 2, 0]], (p + q)[:, :, [2, 0, 1]])[:, :2]
+        norm = np.sqrt(np.einsum("ij,ij->i", nv, nv))
+        unit = np.divide(nv, norm[:, None], out=np.zeros_like(nv), where=norm[:, None] > 0)
+        normals[which] = unit
+        offsets[which] = np.matmul(p[:, :, :2], unit[:, :, None])[:, :, 0].mean(axis=1)
+    return normals, offsets
+
+
+def _ring_edges(ring: np.ndarray) -> list[tuple[int, int]]:
+    """The directed edges (a, b) of a closed ring of vertex ids, the last one back to the first."""
+    ids = ring.tolist()
+    return list(zip(ids, ids[1:] + ids[:1], strict=True))
 
 
 def _merge_close(coords: np.ndarray, tol: float) -> np.ndarray:
@@ -323,7 +336,7 @@ def _crossings(rings, coords, plane_of, eps) -> np.ndarray:
     owner = {}
     for f, rr in enumerate(rings):
         for r in rr:
-            for a, b in zip(r.tolist(), np.roll(r, -1).tolist(), strict=True):
+            for a, b in _ring_edges(r):
                 owner[(a, b)] = f
     out = []
     for (a, b), f in owner.items():
