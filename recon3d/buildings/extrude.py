@@ -306,29 +306,25 @@ def _insert_on_edges(ring: np.ndarray, coords: np.ndarray, tol: float, new_from:
     edges inserted into that edge, in order; consecutive repeats dropped."""
     cand = np.arange(new_from, len(coords))
     p = coords[ring]
-    q = coords[np.roll(ring, -1)]
-    d = q - p
+    d = coords[np.roll(ring, -1)] - p
     length2 = np.einsum("ij,ij->i", d, d)
-    out = []
     c = coords[cand]
-    for k in range(len(ring)):
-        out.append(int(ring[k]))
-        if length2[k] <= 0:
-            continue
-        t = ((c - p[k]) @ d[k]) / length2[k]
-        near = (t > 1e-9) & (t < 1 - 1e-9)
-        if not near.any():
-            continue
-        foot = p[k] + t[near, None] * d[k]
-        dist = np.linalg.norm(c[near] - foot, axis=1)
-        hit = dist <= tol
-        if hit.any():
-            ids = cand[near][hit]
-            for j in ids[np.argsort(t[near][hit], kind="stable")]:
-                if j != ring[k] and j != ring[(k + 1) % len(ring)]:
-                    out.append(int(j))
-    ring = np.array(_dedupe(out), dtype=np.int64)
-    return ring
+    # (edges, candidates): position along each edge and distance to it
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.matmul(c[None] - p[:, None], d[:, :, None])[:, :, 0] / length2[:, None]
+        dist = np.linalg.norm(c[None] - (p[:, None] + t[..., None] * d[:, None]), axis=2)
+    near = (t > 1e-9) & (t < 1 - 1e-9) & (length2 > 0)[:, None]
+    edge, which = np.nonzero(near & (dist <= tol))
+    order = np.lexsort((t[edge, which], edge))  # along each edge; equal positions in index order
+    edge, found = edge[order], cand[which[order]]
+    ids = ring.tolist()
+    out = []
+    inserted = np.split(found, np.searchsorted(edge, np.arange(1, len(ids))))
+    for k, here in enumerate(inserted):
+        out.append(ids[k])
+        ends = (ids[k], ids[(k + 1) % len(ids)])
+        out.extend(j for j in here.tolist() if j not in ends)
+    return np.array(_dedupe(out), dtype=np.int64)
 
 
 def _crossings(rings, coords, plane_of, eps) -> np.ndarray:

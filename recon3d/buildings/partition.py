@@ -93,18 +93,28 @@ def _faces_by_label(faces, tree, geoms, values) -> list[tuple[shapely.Polygon, i
     list of (Polygon, label), by label.
     """
     by_label: dict[int, list] = {}
-    for face in faces:
-        cand = tree.query(face)
-        if not len(cand):
-            continue
-        areas = [shapely.intersection(face, geoms[c]).area for c in cand]
-        by_label.setdefault(values[int(cand[int(np.argmax(areas))])], []).append(face)
+    face_of, cand = tree.query(_geometry_array(faces))  # by face, each face's candidates in tree order
+    if len(cand):
+        areas = shapely.area(shapely.intersection(_geometry_array(faces)[face_of], _geometry_array(geoms)[cand]))
+        start = np.flatnonzero(np.r_[True, face_of[1:] != face_of[:-1]])
+        count = np.diff(np.r_[start, len(cand)])
+        largest = areas == np.repeat(np.maximum.reduceat(areas, start), count)
+        best = np.minimum.reduceat(np.where(largest, np.arange(len(cand)), len(cand)), start)  # the first of equals
+        for f, c in zip(face_of[start].tolist(), cand[best].tolist(), strict=True):
+            by_label.setdefault(values[c], []).append(faces[f])
     return [
         (piece, label)
         for label in sorted(by_label)
         for piece in shapely.get_parts(shapely.union_all(by_label[label]))
         if piece.geom_type == "Polygon" and piece.area > 0
     ]
+
+
+def _geometry_array(geoms) -> np.ndarray:
+    """(n,) object array of shapely geometries (for shapely's vectorised functions)."""
+    out = np.empty(len(geoms), dtype=object)
+    out[:] = list(geoms)
+    return out
 
 
 def _pair_midpoints(xy, labels, cell) -> dict[tuple[int, int], np.ndarray]:
