@@ -409,7 +409,7 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     """
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     label = snap_vertices(vertices, tol)
-    kept = [_welded_rings(label, surface) for surface in surfaces]
+    kept = _welded_rings(label, surfaces)
     flat = [r for rings in kept for r in rings]
     used = np.unique(np.concatenate(flat)) if flat else np.zeros(0, np.int64)
     points = vertices[np.unique(label, return_index=True)[1][used]]
@@ -420,18 +420,25 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     return SolidMesh(points, faces, surface)
 
 
-def _welded_rings(label: np.ndarray, surface: list[np.ndarray]) -> list[np.ndarray]:
-    """A surface's rings as (k,) welded vertex ids, repeats removed; no ring without an outer one.
+def _welded_rings(label: np.ndarray, surfaces: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
+    """Every surface's rings as (k,) welded vertex ids, repeats removed; no ring without an outer one.
 
-    Rings left with fewer than 3 vertices are dropped; a surface whose outer ring is
-    dropped has none.
+    A vertex equal to the one before it (cyclically) is dropped; rings left with fewer
+    than 3 vertices are dropped; a surface whose outer ring is dropped has none.
     """
-    rings = []
-    for ring in surface:
-        ids = label[np.asarray(ring, np.int64)]
-        ids = ids[ids != np.roll(ids, 1)]
-        if len(ids) >= 3:
-            rings.append(ids)
-        elif not rings:
-            return []
-    return rings
+    rings = [np.asarray(r, np.int64) for surface in surfaces for r in surface]
+    if not rings:
+        return [[] for _ in surfaces]
+    size = np.array([len(r) for r in rings])
+    ids = label[np.concatenate(rings)]
+    start = np.r_[0, np.cumsum(size)[:-1]]
+    before = np.arange(len(ids)) - 1
+    before[start[size > 0]] = (start + size - 1)[size > 0]  # a ring's first vertex follows its last
+    keep = ids != ids[before] if len(ids) else np.zeros(0, bool)
+    ring_of = np.repeat(np.arange(len(rings)), size)[keep]
+    welded = iter(np.split(ids[keep], np.cumsum(np.bincount(ring_of, minlength=len(rings)))[:-1]))
+    out = []
+    for surface in surfaces:
+        own = [next(welded) for _ in surface]
+        out.append([r for r in own if len(r) >= 3] if own and len(own[0]) >= 3 else [])
+    return out
