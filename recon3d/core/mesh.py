@@ -41,6 +41,7 @@ __all__ = [
     "split_ring_edges",
     "triangulate_surface",
     "triangulate_surfaces",
+    "welded_rings",
 ]
 
 #: Vertices closer than this (CRS units) are one vertex, and a vertex closer than
@@ -409,7 +410,7 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     """
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     label = snap_vertices(vertices, tol)
-    kept = _welded_rings(label, surfaces)
+    kept = welded_rings(label, surfaces)
     flat = [r for rings in kept for r in rings]
     used = np.unique(np.concatenate(flat)) if flat else np.zeros(0, np.int64)
     points = vertices[np.unique(label, return_index=True)[1][used]]
@@ -420,8 +421,8 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     return SolidMesh(points, faces, surface)
 
 
-def _welded_rings(label: np.ndarray, surfaces: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
-    """Every surface's rings as (k,) welded vertex ids, repeats removed; no ring without an outer one.
+def welded_rings(label: np.ndarray, surfaces: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
+    """Every surface's rings as (k,) vertex ids ``label[ring]``, repeats removed; no ring without an outer one.
 
     A vertex equal to the one before it (cyclically) is dropped; rings left with fewer
     than 3 vertices are dropped; a surface whose outer ring is dropped has none.

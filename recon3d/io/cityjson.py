@@ -41,6 +41,7 @@ import pyproj
 from recon3d.core.city import Building, CityModel, Solid
 from recon3d.core.dates import today
 from recon3d.core.geo import LocalFrame, crs_authority, crs_name, crs_units
+from recon3d.core.mesh import welded_rings
 from recon3d.errors import CRSError
 from recon3d.io import atomic_path
 
@@ -224,12 +225,10 @@ def _solid_geometry(solid: Solid, lod: str, remap: np.ndarray) -> dict | None:
     than 3 vertices are dropped (a surface whose outer ring goes is dropped).
     """
     surfaces, kinds = [], []
-    for rings, kind in zip(solid.surfaces, solid.semantics, strict=True):
-        clean = [_clean_ring(remap[r]) for r in rings]
-        if len(clean[0]) < 3:
-            continue
-        surfaces.append([r.tolist() for r in clean if len(r) >= 3])
-        kinds.append(kind)
+    for rings, kind in zip(welded_rings(remap, solid.surfaces), solid.semantics, strict=True):
+        if rings:
+            surfaces.append([r.tolist() for r in rings])
+            kinds.append(kind)
     if not surfaces:
         return None
     types = list(dict.fromkeys(kinds))
@@ -241,13 +240,6 @@ def _solid_geometry(solid: Solid, lod: str, remap: np.ndarray) -> dict | None:
         "boundaries": [surfaces] if closed else surfaces,
         "semantics": {"surfaces": [{"type": t} for t in types], "values": [values] if closed else values},
     }
-
-
-def _clean_ring(ring: np.ndarray) -> np.ndarray:
-    """(k,) ring without cyclically consecutive repeated vertices."""
-    if len(ring) == 0:
-        return ring
-    return ring[ring != np.roll(ring, 1)] if len(np.unique(ring)) > 1 else ring[:1]
 
 
 def building_attributes(building: Building) -> dict[str, Any]:

@@ -142,10 +142,16 @@ def _write_building(out: io.StringIO, building: Building, solid: Solid, offset: 
     out.write(f"o {name}\nusemtl {name}\n")
     if solid.kind != "Solid":
         out.write(SURFACES_COMMENT + "\n")
-    np.savetxt(out, vertices, fmt="v %.6f %.6f %.6f")
+    _write_rows(out, "v %.6f %.6f %.6f", vertices)
     order, ranges = surface_order(solid, surface)
     faces = faces[order] + offset
     for kind, (first, count) in ranges.items():
         out.write(f"g {name}_{semantic_material(kind)}\n")
-        np.savetxt(out, faces[first : first + count], fmt="f %d %d %d")
+        _write_rows(out, "f %d %d %d", faces[first : first + count])
     return len(vertices)
+
+
+def _write_rows(out: io.StringIO, fmt: str, rows: np.ndarray) -> None:
+    """One line ``fmt % row`` per row of a (n, 3) array (what ``np.savetxt`` writes, in one join)."""
+    line = fmt + "\n"
+    out.write("".join([line % tuple(row) for row in rows.tolist()]))
