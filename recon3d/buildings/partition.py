@@ -147,6 +147,8 @@ def _fit_chain(chain, mids: np.ndarray, rim, cell):
     if len(c) < 2:
         return chain
     seg_a, seg_b = c[:-1], c[1:]
+    (x0, y0), (x1, y1) = c.min(axis=0) - 1.5 * cell, c.max(axis=0) + 1.5 * cell  # the buffer's box
+    mids = mids[(mids[:, 0] >= x0) & (mids[:, 0] <= x1) & (mids[:, 1] >= y0) & (mids[:, 1] <= y1)]
     near = mids[shapely.contains_xy(chain.buffer(1.5 * cell), mids[:, 0], mids[:, 1])]
     if len(near) < 4:
         return chain
@@ -174,8 +176,9 @@ def _fit_chain(chain, mids: np.ndarray, rim, cell):
         p = _cross_lines(lines[k - 1], lines[k])
         if p is not None and np.linalg.norm(p - c[k]) < 3 * cell:
             out[k] = p
-    for end, seg in ((0, 0), (len(c) - 1, len(seg_a) - 1)):
-        if shapely.distance(shapely.Point(c[end]), rim) > 1e-9 * max(1.0, cell):
+    on_rim = ~(shapely.distance(shapely.points(c[[0, -1]]), rim) > 1e-9 * max(1.0, cell))
+    for end, seg, slides in ((0, 0, on_rim[0]), (len(c) - 1, len(seg_a) - 1, on_rim[1])):
+        if not slides:
             continue
         centre, direction = lines[seg]
         probe = shapely.LineString([centre - 1e3 * cell * direction, centre + 1e3 * cell * direction])
@@ -184,9 +187,14 @@ def _fit_chain(chain, mids: np.ndarray, rim, cell):
             best = hits[np.argmin(np.linalg.norm(hits - c[end], axis=1))]
             if np.linalg.norm(best - c[end]) < 3 * cell:
                 out[end] = best
-    if len(out) == 2 and np.allclose(out[0], out[1]):
+    if len(out) == 2 and _same_point(out[0], out[1]):
         return chain
     return shapely.LineString(out)
+
+
+def _same_point(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.allclose(a, b)`` for two finite (2,) points, without its overhead."""
+    return all(abs(p - q) <= 1e-8 + 1e-5 * abs(q) for p, q in zip(a.tolist(), b.tolist(), strict=True))
 
 
 def _cross_lines(a, b):
