@@ -515,12 +515,12 @@ def _merge_small(labels: np.ndarray, n: int, min_cells: int) -> np.ndarray:
         order = np.lexsort((-sizes[dst], -counts, src))
         src, dst = src[order], dst[order]
         first = np.r_[True, src[1:] != src[:-1]]
-        mapping = np.arange(n + 1)
+        mapping = np.arange(n + 1, dtype=np.int32)  # int32 like the labels: no int64 copy of the grid
         mapping[src[first]] = dst[first]
         # a small part absorbed by another small part that itself moves: follow the chain
         for _ in range(8):
             mapping = mapping[mapping]
-        labels = mapping[labels].astype(np.int32)
+        labels = mapping[labels]
     return labels
 
 
@@ -640,9 +640,10 @@ def find_blobs(
         )
     if n:
         labels = _merge_small(labels, n, min_cells)
-        uniq, labels = np.unique(labels, return_inverse=True)
-        labels = labels.reshape(mask.shape).astype(np.int32)
-        if uniq[0] != 0:  # no background cell at all: one roof over the whole tile
+        # renumbered 1.. in order (np.unique's inverse, without sorting the grid)
+        present = np.bincount(labels.ravel(), minlength=n + 1) > 0
+        labels = (np.cumsum(present) - 1).astype(np.int32)[labels]
+        if not present[0]:  # no background cell at all: one roof over the whole tile
             labels += 1
         n = int(labels.max())
     index = np.arange(1, n + 1)
