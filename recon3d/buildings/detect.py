@@ -398,10 +398,13 @@ def _shifted(a: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
 
 
 def _consecutive(labels: np.ndarray) -> tuple[np.ndarray, int]:
-    """Labels renumbered 1..n in order of their old values (0 stays 0)."""
-    uniq, inv = np.unique(labels, return_inverse=True)
-    inv = inv.reshape(labels.shape).astype(np.int32)
-    if uniq[0] != 0:
+    """Labels (>= 0) renumbered 1..n in order of their old values (0 stays 0), and n.
+
+    np.unique's inverse, from a count of the labels present instead of a sort of the grid.
+    """
+    present = np.bincount(labels.ravel()) > 0
+    inv = (np.cumsum(present) - 1).astype(np.int32)[labels]
+    if not present[0]:
         inv += 1
     return inv, int(inv.max())
 
@@ -639,13 +642,7 @@ def find_blobs(
             valley_reach=units.length(1.0),
         )
     if n:
-        labels = _merge_small(labels, n, min_cells)
-        # renumbered 1.. in order (np.unique's inverse, without sorting the grid)
-        present = np.bincount(labels.ravel(), minlength=n + 1) > 0
-        labels = (np.cumsum(present) - 1).astype(np.int32)[labels]
-        if not present[0]:  # no background cell at all: one roof over the whole tile
-            labels += 1
-        n = int(labels.max())
+        labels, n = _consecutive(_merge_small(labels, n, min_cells))
     index = np.arange(1, n + 1)
     cells = np.bincount(labels.ravel(), minlength=n + 1)[1:].astype(np.float64)
     smooth = smooth_cells & mask
