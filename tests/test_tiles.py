@@ -190,6 +190,23 @@ def test_point_store_reads_tiles_in_survey_order(tmp_path):
         assert np.array_equal(h.cloud.classification, whole.classification[mine])
 
 
+def test_sorting_on_the_deciding_keys_first_is_lexsort():
+    """cloud.laz's point order: the tie-resolving sort gives np.lexsort's order, with many
+    ties in the deciding keys, NaN in the others, and NaN in a deciding key (which falls
+    back to np.lexsort)."""
+    from recon3d.pipeline.points import lexsort_ties
+
+    rng = np.random.default_rng(7)
+    for trial in range(500):
+        n, level = int(rng.integers(0, 80)), int(rng.integers(1, 5))
+        keys = [rng.integers(0, level + 1, n).astype(np.uint16), np.round(rng.random(n) * level) / 2,
+                *(rng.integers(0, level, n).astype(float) for _ in range(3)), rng.integers(0, level, n)]
+        keys[1][rng.random(n) < 0.2] = np.nan
+        if trial % 10 == 0 and n:
+            keys[3][0] = np.nan
+        np.testing.assert_array_equal(lexsort_ties(keys, 3), np.lexsort(keys))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name, crs", [("delft", "EPSG:7415"), ("ign", None)])
 def test_tile_sizes_and_workers_give_the_same_bytes(name, crs, request, tmp_path):

@@ -26,7 +26,7 @@ from recon3d.config import PipelineConfig
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
-from recon3d.pipeline.points import CloudSummary, TilePoints, cell_rowcol
+from recon3d.pipeline.points import CloudSummary, TilePoints, cell_rowcol, lexsort_ties
 from recon3d.pipeline.tiling import BLOCK, Tile, morton
 from recon3d.quality import buildings as building_quality
 from recon3d.quality import evaluate
@@ -415,7 +415,7 @@ def _records(own: TilePoints, point_classes: np.ndarray) -> dict:
     a = cloud.attributes
     keys = [a[k] for k in ("intensity", "gps_time") if k in a]
     keys += [cloud.xyz[:, 2], cloud.xyz[:, 1], cloud.xyz[:, 0], morton(row // BLOCK, col // BLOCK)]
-    order = np.lexsort(keys)
+    order = lexsort_ties(keys, 3)
     out = {"xyz": cloud.xyz[order]}
     out.update({f"a_{k}": np.asarray(v)[order] for k, v in a.items()})
     return out

@@ -27,7 +27,7 @@ from recon3d.terrain.dsm import SpacingGrid
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GROSS_HEIGHT_ERROR", "CloudSummary", "LasStore", "MemoryStore", "TilePoints"]
+__all__ = ["GROSS_HEIGHT_ERROR", "CloudSummary", "LasStore", "MemoryStore", "TilePoints", "lexsort_ties"]
 
 #: Metres from the cloud's median height beyond which a point is a gross error
 #: (no terrain or building spans 10 km vertically): dropped, with a warning.
@@ -472,11 +472,38 @@ def _first_of_each(rec: np.ndarray) -> np.ndarray:
     keys = [rec["x"], rec["y"], rec["z"]]
     if "gps_time" in rec.dtype.names:
         keys.append(rec["gps_time"])
-    order = np.lexsort([rec["order"], *keys[::-1]])  # by x, y, z, time, then survey order
+    order = lexsort_ties([rec["order"], *keys[::-1]], 3)  # by x, y, z, time, then survey order
     rows = np.column_stack([k[order] for k in keys])
     repeat = np.zeros(len(rec), bool)
     repeat[order[1:]] = (rows[1:] == rows[:-1]).all(axis=1)
     return ~repeat
+
+
+def lexsort_ties(keys: list[np.ndarray], decisive: int) -> np.ndarray:
+    """``np.lexsort(keys)`` (the last key first), sorted on the last ``decisive`` keys and
+    on the others only where those tie.
+
+    Points rarely share their first coordinates, so most of them are sorted on the
+    deciding keys alone (about half the time of a six-key sort). The keys that decide
+    must hold no NaN (with one, this is np.lexsort itself).
+    """
+    if any(key.dtype.kind == "f" and np.isnan(key).any() for key in keys[-decisive:]):
+        return np.lexsort(keys)
+    order = np.lexsort(keys[-decisive:])
+    rest = keys[:-decisive]
+    if not rest or len(order) < 2:
+        return order
+    same = np.ones(len(order) - 1, bool)
+    for key in keys[-decisive:]:
+        k = key[order]
+        same &= k[1:] == k[:-1]
+    if not same.any():
+        return order
+    tied = np.flatnonzero(np.r_[same, False] | np.r_[False, same])
+    group = np.cumsum(np.r_[True, ~same])[tied]
+    members = order[tied]  # each group in input order, as the stable sort left it
+    order[tied] = members[np.lexsort([*(key[members] for key in rest), group])]
+    return order
 
 
 def _histogram_median(heights: dict[int, int]) -> float:
