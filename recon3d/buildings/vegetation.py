@@ -95,11 +95,13 @@ def point_features(
     count = valid.sum(axis=1)
     for s in range(0, n, CHUNK):  # bounded memory: (chunk, k, 3) at a time
         sl = slice(s, min(s + CHUNK, n))
-        ok = valid[sl, :, None]
-        p = np.where(ok, xyz[np.where(valid[sl], nb[sl], 0)] - xyz[sl, None, :], 0.0)
+        missing = ~valid[sl]
+        p = xyz[np.where(valid[sl], nb[sl], 0)]  # (chunk, k, 3), in place from here on
+        p -= xyz[sl, None, :]
+        p[missing] = 0.0
         m = count[sl, None, None]
         p -= p.sum(axis=1, keepdims=True) / m
-        p *= ok
+        p[missing] = 0.0
         w = np.linalg.eigvalsh(np.matmul(p.transpose(0, 2, 1), p) / m)
         l3, l2, l1 = (np.clip(w[:, i], 0.0, None) for i in range(3))
         safe = np.where(l1 > 0, l1, 1.0)
