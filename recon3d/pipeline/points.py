@@ -368,7 +368,9 @@ class LasStore:
                     rec = self._load(path)
                     row, col = cell_rowcol(np.column_stack([rec["x"], rec["y"]]), transform)
                     keep = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
-                    if keep.any():
+                    if keep.all():  # a bucket inside the window: no copy
+                        parts.append((rec, row, col))
+                    elif keep.any():
                         parts.append((rec[keep], row[keep], col[keep]))
         if not parts:
             rec, row, col = np.zeros(0, self.dtype), np.zeros(0, np.int64), np.zeros(0, np.int64)
