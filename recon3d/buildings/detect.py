@@ -398,15 +398,18 @@ def _shifted(a: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
 
 
 def _consecutive(labels: np.ndarray) -> tuple[np.ndarray, int]:
-    """Labels (>= 0) renumbered 1..n in order of their old values (0 stays 0), and n.
-
-    np.unique's inverse, from a count of the labels present instead of a sort of the grid.
-    """
-    present = np.bincount(labels.ravel()) > 0
-    inv = (np.cumsum(present) - 1).astype(np.int32)[labels]
-    if not present[0]:
+    """Labels (>= 0) renumbered 1..n in order of their old values (0 stays 0), and n."""
+    ids, inv = _unique_labels(labels, np.int32)
+    if ids[0] != 0:
         inv += 1
     return inv, int(inv.max())
+
+
+def _unique_labels(labels: np.ndarray, dtype=np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(labels, return_inverse=True)`` of a grid of labels >= 0, the inverse in
+    the grid's shape: from a count of the labels present instead of a sort of the grid."""
+    present = np.bincount(labels.ravel()) > 0
+    return np.flatnonzero(present).astype(labels.dtype), (np.cumsum(present) - 1).astype(dtype)[labels]
 
 
 def _piece_border(labels: np.ndarray, *, touching: bool = False) -> np.ndarray:
@@ -425,8 +428,7 @@ def _piece_border(labels: np.ndarray, *, touching: bool = False) -> np.ndarray:
 def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_shared, min_evidence):
     """Rejoin the pieces of a step cut that are no buildings (:func:`split_at_steps`)."""
     for _ in range(20):
-        ids, inv = np.unique(pieces, return_inverse=True)
-        p = inv.reshape(pieces.shape)
+        ids, p = _unique_labels(pieces)
         n = len(ids)
         part_of = np.zeros(n, np.int64)
         part_of[p.ravel()] = parts.ravel()
