@@ -132,11 +132,12 @@ def _pair_midpoints(xy, labels, cell) -> dict[tuple[int, int], np.ndarray]:
     diff = la != lb
     pairs, la, lb = pairs[diff], la[diff], lb[diff]
     mid = 0.5 * (pts[pairs[:, 0]] + pts[pairs[:, 1]])
-    key = np.minimum(la, lb) * (int(lab.max()) + 1) + np.maximum(la, lb)
-    out = {}
-    for k in np.unique(key):
-        out[(int(k // (lab.max() + 1)), int(k % (lab.max() + 1)))] = mid[key == k]
-    return out
+    span = int(lab.max()) + 1
+    key = np.minimum(la, lb) * span + np.maximum(la, lb)
+    order = np.argsort(key, kind="stable")  # by pair, each pair's midpoints in their order
+    keys, start = np.unique(key[order], return_index=True)
+    groups = np.split(mid[order], start[1:])
+    return {(int(k // span), int(k % span)): g for k, g in zip(keys.tolist(), groups, strict=True)}
 
 
 def _fit_chain(chain, mids: np.ndarray, rim, cell):
