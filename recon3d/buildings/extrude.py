@@ -17,6 +17,7 @@ from recon3d.buildings.outline import remove_spikes
 from recon3d.buildings.roofgrid import LodFailure, plane_height
 from recon3d.core.city import Solid
 from recon3d.core.geo import LocalFrame
+from recon3d.core.mesh import RingTable
 
 __all__ = ["MinRootSets", "clean_footprint", "lod1_solid", "partition_solid"]
 
@@ -213,8 +214,7 @@ def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list
     sets = MinRootSets(n)
     owner: dict[tuple[int, int], int] = {}
     for i, w in enumerate(walls):
-        ring = w.tolist()
-        for a, b in zip(ring, ring[1:] + ring[:1], strict=True):
+        for a, b in _ring_edges(w):
             j = owner.get((b, a))
             same = j is not None and normals[i] @ normals[j] > 0.99996
             if same and abs(offsets[i] - offsets[j]) < tol:
@@ -240,20 +240,13 @@ def _merge_walls(verts: np.ndarray, walls: list[np.ndarray], tol: float) -> list
 
 def _wall_planes(verts: np.ndarray, walls: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Unit horizontal normals (n, 2) of the walls (their Newell normals' x and y; 0 for
-    a wall without area) and their offsets (n,): the mean of ``xy . normal``. Walls of
-    one vertex count are done together (the same sums as one at a time)."""
-    normals, offsets = np.zeros((len(walls), 2)), np.zeros(len(walls))
-    sizes = np.array([len(w) for w in walls])
-    for k in np.unique(sizes):
-        which = np.flatnonzero(sizes == k)
-        p = verts[np.stack([walls[i] for i in which])]  # (m, k, 3)
-        q = np.roll(p, -1, axis=1)
-        nv = np.einsum("mij,mij->mj", (p - q)[:, :, [1, 2, 0]], (p + q)[:, :, [2, 0, 1]])[:, :2]
-        norm = np.sqrt(np.einsum("ij,ij->i", nv, nv))
-        unit = np.divide(nv, norm[:, None], out=np.zeros_like(nv), where=norm[:, None] > 0)
-        normals[which] = unit
-        offsets[which] = np.matmul(p[:, :, :2], unit[:, :, None])[:, :, 0].mean(axis=1)
-    return normals, offsets
+    a wall without area) and their offsets (n,): the mean of ``xy . normal``."""
+    table = RingTable.of([[w] for w in walls])
+    nv = table.newell_normals(verts)[:, :2]
+    norm = np.sqrt(np.einsum("ij,ij->i", nv, nv))
+    unit = np.divide(nv, norm[:, None], out=np.zeros_like(nv), where=norm[:, None] > 0)
+    along = np.einsum("ij,ij->i", verts[table.index, :2], unit[table.ring])
+    return unit, np.bincount(table.ring, along, minlength=len(walls)) / np.maximum(table.sizes, 1)
 
 
 def _ring_edges(ring: np.ndarray) -> list[tuple[int, int]]:

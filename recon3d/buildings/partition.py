@@ -93,9 +93,10 @@ def _faces_by_label(faces, tree, geoms, values) -> list[tuple[shapely.Polygon, i
     list of (Polygon, label), by label.
     """
     by_label: dict[int, list] = {}
-    face_of, cand = tree.query(_geometry_array(faces))  # by face, each face's candidates in tree order
+    face_array = np.array(faces, dtype=object)
+    face_of, cand = tree.query(face_array)  # by face, each face's candidates in tree order
     if len(cand):
-        areas = shapely.area(shapely.intersection(_geometry_array(faces)[face_of], _geometry_array(geoms)[cand]))
+        areas = shapely.area(shapely.intersection(face_array[face_of], np.array(geoms, dtype=object)[cand]))
         start = np.flatnonzero(np.r_[True, face_of[1:] != face_of[:-1]])
         count = np.diff(np.r_[start, len(cand)])
         largest = areas == np.repeat(np.maximum.reduceat(areas, start), count)
@@ -108,13 +109,6 @@ def _faces_by_label(faces, tree, geoms, values) -> list[tuple[shapely.Polygon, i
         for piece in shapely.get_parts(shapely.union_all(by_label[label]))
         if piece.geom_type == "Polygon" and piece.area > 0
     ]
-
-
-def _geometry_array(geoms) -> np.ndarray:
-    """(n,) object array of shapely geometries (for shapely's vectorised functions)."""
-    out = np.empty(len(geoms), dtype=object)
-    out[:] = list(geoms)
-    return out
 
 
 def _pair_midpoints(xy, labels, cell) -> dict[tuple[int, int], np.ndarray]:
@@ -148,8 +142,6 @@ def _fit_chain(chain, mids: np.ndarray, rim, cell):
     if len(c) < 2:
         return chain
     seg_a, seg_b = c[:-1], c[1:]
-    (x0, y0), (x1, y1) = c.min(axis=0) - 1.5 * cell, c.max(axis=0) + 1.5 * cell  # the buffer's box
-    mids = mids[(mids[:, 0] >= x0) & (mids[:, 0] <= x1) & (mids[:, 1] >= y0) & (mids[:, 1] <= y1)]
     near = mids[shapely.contains_xy(chain.buffer(1.5 * cell), mids[:, 0], mids[:, 1])]
     if len(near) < 4:
         return chain
@@ -188,14 +180,9 @@ def _fit_chain(chain, mids: np.ndarray, rim, cell):
             best = hits[np.argmin(np.linalg.norm(hits - c[end], axis=1))]
             if np.linalg.norm(best - c[end]) < 3 * cell:
                 out[end] = best
-    if len(out) == 2 and _same_point(out[0], out[1]):
+    if len(out) == 2 and np.allclose(out[0], out[1]):
         return chain
     return shapely.LineString(out)
-
-
-def _same_point(a: np.ndarray, b: np.ndarray) -> bool:
-    """``np.allclose(a, b)`` for two finite (2,) points, without its overhead."""
-    return all(abs(p - q) <= 1e-8 + 1e-5 * abs(q) for p, q in zip(a.tolist(), b.tolist(), strict=True))
 
 
 def _cross_lines(a, b):

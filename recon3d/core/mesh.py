@@ -23,6 +23,7 @@ never moved, so the mesh encloses the volume of the polygons.
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import mapbox_earcut
@@ -33,6 +34,7 @@ from scipy.spatial import cKDTree
 
 __all__ = [
     "WELD_TOLERANCE",
+    "RingTable",
     "SolidMesh",
     "newell_normal",
     "points_on_segments",
@@ -71,6 +73,78 @@ class SolidMesh(NamedTuple):
     vertices: np.ndarray
     faces: np.ndarray
     surface: np.ndarray
+
+
+@dataclass(frozen=True)
+class RingTable:
+    """The rings of a solid's surfaces as one flat array (all rings' work at once: the
+    mesh checks, the welding and the triangulation).
+
+    Attributes
+    ----------
+    index : (m,) int64
+        Vertex indices of every ring, ring after ring.
+    sizes : (r,) int64
+        Vertices per ring.
+    owner : (r,) int64
+        Surface of each ring.
+    position : (r,) int64
+        Place of each ring in its surface (0: the outer ring).
+    """
+
+    index: np.ndarray
+    sizes: np.ndarray
+    owner: np.ndarray
+    position: np.ndarray
+
+    @classmethod
+    def of(cls, surfaces: list[list[np.ndarray]]) -> RingTable:
+        rings = [np.asarray(r, np.int64).reshape(-1) for s in surfaces for r in s]
+        counts = [len(s) for s in surfaces]
+        return cls(
+            np.concatenate(rings) if rings else np.zeros(0, np.int64),
+            np.array([len(r) for r in rings], np.int64),
+            np.repeat(np.arange(len(surfaces), dtype=np.int64), counts),
+            np.concatenate([np.arange(c, dtype=np.int64) for c in counts]) if rings else np.zeros(0, np.int64),
+        )
+
+    @property
+    def starts(self) -> np.ndarray:
+        """(r,) where each ring begins in ``index``."""
+        return np.r_[0, np.cumsum(self.sizes)[:-1]].astype(np.int64)
+
+    @property
+    def ring(self) -> np.ndarray:
+        """(m,) the ring of each entry of ``index``."""
+        return np.repeat(np.arange(len(self.sizes)), self.sizes)
+
+    def following(self) -> np.ndarray:
+        """(m,) position in ``index`` of the next vertex of the same ring (cyclic)."""
+        nxt = np.arange(1, len(self.index) + 1)
+        ends = self.starts + self.sizes - 1
+        nonempty = self.sizes > 0
+        nxt[ends[nonempty]] = self.starts[nonempty]
+        return nxt
+
+    def preceding(self) -> np.ndarray:
+        """(m,) position in ``index`` of the vertex before each one in its ring (cyclic)."""
+        before = np.empty(len(self.index), np.int64)
+        before[self.following()] = np.arange(len(self.index))
+        return before
+
+    def newell_normals(self, vertices: np.ndarray) -> np.ndarray:
+        """(r, 3) :func:`newell_normal` of every ring (sums in ring order)."""
+        p = vertices[self.index]
+        q = vertices[self.index[self.following()]]
+        terms = (p - q)[:, [1, 2, 0]] * (p + q)[:, [2, 0, 1]]
+        ring, r = self.ring, len(self.sizes)
+        return np.column_stack([np.bincount(ring, terms[:, k], minlength=r) for k in range(3)])
+
+    def subset(self, keep: np.ndarray) -> RingTable:
+        """The table with only the vertices where ``keep`` (m,) and the rings left non-empty."""
+        sizes = np.bincount(self.ring[keep], minlength=len(self.sizes))
+        alive = sizes > 0
+        return RingTable(self.index[keep], sizes[alive], self.owner[alive], self.position[alive])
 
 
 def newell_normal(points: np.ndarray) -> np.ndarray:
@@ -243,22 +317,20 @@ def triangulate_surfaces(vertices: np.ndarray, surfaces: list[list[np.ndarray]])
     live = np.array([s for s, rings in enumerate(surfaces) if rings], np.int64)
     if not len(live):
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    rings = [np.asarray(r, np.int64) for s in live for r in surfaces[s]]
-    ring_count = np.array([len(surfaces[s]) for s in live])
-    sizes = np.array([len(r) for r in rings])
-    index = np.concatenate(rings)
-    row_surface = np.repeat(np.repeat(np.arange(len(live)), ring_count), sizes)  # live position of each ring row
-    ring_start = np.r_[0, np.cumsum(sizes)[:-1]]
-    outer_ring = np.r_[0, np.cumsum(ring_count)[:-1]]
-    row_bounds = np.r_[ring_start[outer_ring], len(index)]
-    normal = _newell_normals(vertices, index, ring_start[outer_ring], sizes[outer_ring])
+    table = RingTable.of([surfaces[s] for s in live])
+    index, sizes = table.index, table.sizes
+    row_surface = table.owner[table.ring]  # live position of each ring row
+    outer_ring = np.flatnonzero(table.position == 0)
+    ring_count = np.diff(np.r_[outer_ring, len(sizes)])
+    row_bounds = np.r_[table.starts[outer_ring], len(index)]
+    normal = table.newell_normals(vertices)[outer_ring]
     # the plane of the largest projection; of two equal ones (a wall at 45 degrees) the
     # first, whatever the rounding of the sums (which differs between numpy's kernels)
     size = np.abs(normal)
     drop = np.argmax(size >= (1.0 - 1e-9) * size.max(axis=1, keepdims=True), axis=1)
     xy = np.take_along_axis(vertices[index], np.array([[1, 2], [0, 2], [0, 1]])[drop][row_surface], axis=1)
     ends = (np.cumsum(sizes) - np.repeat(row_bounds[:-1], ring_count)).astype(np.uint32)
-    ring_bounds = np.r_[outer_ring, len(rings)]
+    ring_bounds = np.r_[outer_ring, len(sizes)]
     pieces, counts = [], np.zeros(len(live), np.int64)
     for k in np.flatnonzero(normal.any(axis=1)):
         a, b = row_bounds[k], row_bounds[k + 1]
@@ -289,17 +361,6 @@ def triangulate_surfaces(vertices: np.ndarray, surfaces: list[list[np.ndarray]])
             counts[k] = len(parts[k])
         faces = np.concatenate(parts)
     return faces, np.repeat(live, counts)
-
-
-def _newell_normals(vertices: np.ndarray, index: np.ndarray, start: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """(s, 3) :func:`newell_normal` of the rings ``index[start[i]:start[i] + size[i]]``."""
-    rows = np.repeat(start - np.r_[0, np.cumsum(size)[:-1]], size) + np.arange(size.sum())
-    p = vertices[index[rows]]
-    nxt = np.arange(1, len(p) + 1)
-    first = np.r_[0, np.cumsum(size)[:-1]]
-    nxt[first + size - 1] = first  # a ring's last edge closes on its first vertex
-    q = p[nxt]
-    return np.add.reduceat((p - q)[:, [1, 2, 0]] * (p + q)[:, [2, 0, 1]], first, axis=0)
 
 
 def _unfolded(index: np.ndarray, xy: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:
@@ -427,19 +488,15 @@ def welded_rings(label: np.ndarray, surfaces: list[list[np.ndarray]]) -> list[li
     A vertex equal to the one before it (cyclically) is dropped; rings left with fewer
     than 3 vertices are dropped; a surface whose outer ring is dropped has none.
     """
-    rings = [np.asarray(r, np.int64) for surface in surfaces for r in surface]
-    if not rings:
-        return [[] for _ in surfaces]
-    size = np.array([len(r) for r in rings])
-    ids = label[np.concatenate(rings)]
-    start = np.r_[0, np.cumsum(size)[:-1]]
-    before = np.arange(len(ids)) - 1
-    before[start[size > 0]] = (start + size - 1)[size > 0]  # a ring's first vertex follows its last
-    keep = ids != ids[before] if len(ids) else np.zeros(0, bool)
-    ring_of = np.repeat(np.arange(len(rings)), size)[keep]
-    welded = iter(np.split(ids[keep], np.cumsum(np.bincount(ring_of, minlength=len(rings)))[:-1]))
-    out = []
-    for surface in surfaces:
-        own = [next(welded) for _ in surface]
-        out.append([r for r in own if len(r) >= 3] if own and len(own[0]) >= 3 else [])
+    table = RingTable.of(surfaces)
+    table = RingTable(label[table.index], table.sizes, table.owner, table.position)
+    welded = table.subset(table.index != table.index[table.preceding()])
+    whole = welded.sizes >= 3
+    outer = np.zeros(len(surfaces), bool)
+    outer[welded.owner[whole & (welded.position == 0)]] = True
+    out: list[list[np.ndarray]] = [[] for _ in surfaces]
+    rings = np.split(welded.index, np.cumsum(welded.sizes)[:-1]) if len(welded.sizes) else []
+    for ring, s, keep in zip(rings, welded.owner.tolist(), whole.tolist(), strict=True):
+        if keep and outer[s]:
+            out[s].append(ring)
     return out

@@ -44,7 +44,7 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 
 from recon3d.core.city import CityModel, Solid
-from recon3d.core.mesh import snap_vertices
+from recon3d.core.mesh import RingTable, snap_vertices
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ def check_solid(
     issues: list[MeshIssue] = []
     if len(solid.surfaces) < 4:
         issues.append(_issue(301, f"{len(solid.surfaces)} surfaces, a solid needs at least 4"))
-    table = _RingTable.of(solid.surfaces)
+    table = RingTable.of(solid.surfaces)
     found, clean = _ring_issues(vertices, vid, table, snap, planarity_tol)
     issues += found
     ids, following = vid[clean.index], clean.following()
@@ -139,73 +139,16 @@ def check_solid(
     return issues
 
 
-@dataclass(frozen=True)
-class _RingTable:
-    """The rings of a solid's surfaces as one flat array (all rings' checks at once).
-
-    Attributes
-    ----------
-    index : (m,) int64
-        Vertex indices of every ring, ring after ring.
-    sizes : (r,) int64
-        Vertices per ring.
-    owner : (r,) int64
-        Surface of each ring.
-    position : (r,) int64
-        Place of each ring in its surface (0: the outer ring).
-    """
-
-    index: np.ndarray
-    sizes: np.ndarray
-    owner: np.ndarray
-    position: np.ndarray
-
-    @classmethod
-    def of(cls, surfaces: list[list[np.ndarray]]) -> _RingTable:
-        rings = [np.asarray(r, np.int64).reshape(-1) for s in surfaces for r in s]
-        counts = [len(s) for s in surfaces]
-        return cls(
-            np.concatenate(rings) if rings else np.zeros(0, np.int64),
-            np.array([len(r) for r in rings], np.int64),
-            np.repeat(np.arange(len(surfaces), dtype=np.int64), counts),
-            np.concatenate([np.arange(c, dtype=np.int64) for c in counts]) if rings else np.zeros(0, np.int64),
-        )
-
-    @property
-    def starts(self) -> np.ndarray:
-        """(r,) where each ring begins in ``index``."""
-        return np.r_[0, np.cumsum(self.sizes)[:-1]].astype(np.int64)
-
-    @property
-    def ring(self) -> np.ndarray:
-        """(m,) the ring of each entry of ``index``."""
-        return np.repeat(np.arange(len(self.sizes)), self.sizes)
-
-    def following(self) -> np.ndarray:
-        """(m,) position in ``index`` of the next vertex of the same ring (cyclic)."""
-        nxt = np.arange(1, len(self.index) + 1)
-        ends = self.starts + self.sizes - 1
-        nonempty = self.sizes > 0
-        nxt[ends[nonempty]] = self.starts[nonempty]
-        return nxt
-
-    def subset(self, keep: np.ndarray) -> _RingTable:
-        """The table with only the vertices where ``keep`` (m,) and the rings left non-empty."""
-        sizes = np.bincount(self.ring[keep], minlength=len(self.sizes))
-        alive = sizes > 0
-        return _RingTable(self.index[keep], sizes[alive], self.owner[alive], self.position[alive])
-
-
 def _ring_issues(
-    vertices: np.ndarray, vid: np.ndarray, table: _RingTable, snap: float, tol: float
-) -> tuple[list[MeshIssue], _RingTable]:
+    vertices: np.ndarray, vid: np.ndarray, table: RingTable, snap: float, tol: float
+) -> tuple[list[MeshIssue], RingTable]:
     """Ring-level checks (101, 102, 105) and planarity (203) of every surface.
 
     Returns
     -------
     issues : list of MeshIssue
         By surface, each surface's ring issues in ring order, then its 203.
-    clean : _RingTable
+    clean : RingTable
         The usable rings (3 distinct points or more), consecutive repeats removed.
     """
     ring = table.ring
@@ -242,7 +185,7 @@ def _ring_name(position: int) -> str:
     return f"ring {position}" if position else "outer ring"
 
 
-def _collapsed(vertices: np.ndarray, table: _RingTable, snap: float) -> np.ndarray:
+def _collapsed(vertices: np.ndarray, table: RingTable, snap: float) -> np.ndarray:
     """(r,) True for rings thinner than ``snap``: area < snap * perimeter / 2.
 
     A w x L rectangle passes this test exactly when w < snap. The area is half the
@@ -250,14 +193,12 @@ def _collapsed(vertices: np.ndarray, table: _RingTable, snap: float) -> np.ndarr
     """
     p = vertices[table.index]
     q = vertices[table.index[table.following()]]
-    terms = (p - q)[:, [1, 2, 0]] * (p + q)[:, [2, 0, 1]]
-    ring, r = table.ring, len(table.sizes)
-    normal = np.column_stack([np.bincount(ring, terms[:, k], minlength=r) for k in range(3)])
-    perimeter = np.bincount(ring, np.linalg.norm(q - p, axis=1), minlength=r)
+    normal = table.newell_normals(vertices)
+    perimeter = np.bincount(table.ring, np.linalg.norm(q - p, axis=1), minlength=len(table.sizes))
     return 0.5 * np.linalg.norm(normal, axis=1) < 0.5 * snap * perimeter
 
 
-def _planarity(vertices: np.ndarray, table: _RingTable, tol: float) -> list[tuple[int, float]]:
+def _planarity(vertices: np.ndarray, table: RingTable, tol: float) -> list[tuple[int, float]]:
     """(surface, largest distance) where a vertex of a surface's rings is further than
     ``tol`` from their least-squares plane (the direction of least spread)."""
     if not len(table.index):
