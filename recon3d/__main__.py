@@ -1,4 +1,4 @@
-from recon3d.cli import main
+from recon3d.cli import entry
 
 if __name__ == "__main__":
-    main()
+    entry()

@@ -732,6 +732,22 @@ def main() -> None:
         raise
 
 
+def entry() -> None:
+    """The ``recon3d`` command: :func:`main`, and an interrupted run leaves without the
+    interpreter's teardown once its own clean-up has run: a native thread of a library
+    still winding down can crash that teardown (exit -11 instead of 130 / 143)."""
+    import os
+
+    try:
+        main()
+    except SystemExit as exc:
+        if _RECEIVED and exc.code in (130, 143):
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(exc.code)
+        raise
+
+
 def _interrupted(signum: int) -> None:
     """Say so and leave: exit 130 for Ctrl-C, 143 for SIGTERM."""
     import signal
