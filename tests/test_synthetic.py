@@ -111,6 +111,28 @@ def test_truth_rasters(scene):
     assert np.mean(np.abs(dsm.data[free] - dtm.data[free]) < 1e-3) > 0.7  # mostly bare ground
 
 
+def test_truth_grids_in_row_blocks(scene, monkeypatch):
+    """The truth grids are computed in blocks of rows to bound memory on large surveys:
+    blocks of a few rows give the same cells as one block (and as the written files)."""
+    from recon3d.synthetic import city as city_module
+    from recon3d.synthetic.city import row_blocks, truth_dsm, truth_dtm
+    from recon3d.synthetic.scene import views
+
+    blocks = row_blocks((10, 7), cells=20)
+    assert [(b.start, b.stop) for b in blocks] == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
+    assert [(b.start, b.stop) for b in row_blocks((3, 50), cells=20)] == [(0, 1), (1, 2), (2, 3)]
+    dsm = read_raster(scene.folder / "truth" / "dsm.tif")
+    grid = (scene.city, dsm.transform, dsm.shape)
+    whole = truth_dsm(*grid), truth_dtm(*grid), views(scene.city, scene.cameras, dsm.data, dsm.transform)
+    monkeypatch.setattr(city_module, "BLOCK_CELLS", 3 * dsm.shape[1] + 5)  # 3 rows at a time, a short last block
+    assert len(row_blocks(dsm.shape)) > 10
+    blocked = truth_dsm(*grid), truth_dtm(*grid), views(scene.city, scene.cameras, dsm.data, dsm.transform)
+    for a, b in zip(whole, blocked, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(whole[0], dsm.data)
+    np.testing.assert_array_equal(whole[2], read_raster(scene.folder / "truth" / "views.tif").data)
+
+
 def test_checkpoints(scene):
     cp = read_checkpoints(scene.folder / "truth" / "checkpoints.csv")
     assert set(cp.kinds) == {"ground", "roof"}

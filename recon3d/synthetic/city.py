@@ -44,8 +44,10 @@ __all__ = [
     "SyntheticCity",
     "Terrain",
     "TreeTruth",
+    "cell_centres",
     "checkpoints",
     "make_city",
+    "row_blocks",
     "truth_disparity",
     "truth_dsm",
     "truth_dtm",
@@ -982,10 +984,24 @@ def _assemble(seed, size, crs, frame, terrain, streets, buildings, trees) -> Syn
 # --------------------------------------------------------------------------- truth
 
 
-def _cell_centres(transform: Affine, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """World x, y (rows, cols) of the cell centres of a grid."""
+#: Cells of a truth grid computed at once: the grids of a large survey hold tens of
+#: millions of cells, and their rays and projections several times that in bytes.
+BLOCK_CELLS = 2**21
+
+
+def row_blocks(shape: tuple[int, int], cells: int | None = None) -> list[slice]:
+    """Consecutive row slices of a (rows, cols) grid, each of at most ``cells`` cells
+    (default :data:`BLOCK_CELLS`) or one row."""
     rows, cols = shape
-    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
+    step = max(1, (cells or BLOCK_CELLS) // max(cols, 1))
+    return [slice(r, min(r + step, rows)) for r in range(0, rows, step)]
+
+
+def cell_centres(transform: Affine, shape: tuple[int, int], rows: slice | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World x, y (rows, cols) of the cell centres of a grid (of its ``rows`` only, if given)."""
+    n, cols = shape
+    rows = rows or slice(0, n)
+    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows.start, rows.stop) + 0.5)
     x = transform.c + c * transform.a + r * transform.b
     y = transform.f + c * transform.d + r * transform.e
     return x, y
@@ -1009,15 +1025,17 @@ def truth_dsm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) ->
     from recon3d.core.o3d import open3d
 
     o3d = open3d()
-    x, y = _cell_centres(transform, shape)
     ox, oy, oz = city.origin
     top = city.vertices[:, 2].max() + 10.0
-    rays = np.zeros((*x.shape, 6), np.float32)
-    rays[..., 0], rays[..., 1], rays[..., 2] = x - ox, y - oy, top
-    rays[..., 5] = -1.0
-    t = city.raycaster().cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
-    z = np.where(np.isfinite(t), top - t + oz, np.nan)
-    return z.astype(np.float32)
+    out = np.empty(shape, np.float32)
+    for rows in row_blocks(shape):
+        x, y = cell_centres(transform, shape, rows)
+        rays = np.zeros((*x.shape, 6), np.float32)
+        rays[..., 0], rays[..., 1], rays[..., 2] = x - ox, y - oy, top
+        rays[..., 5] = -1.0
+        t = city.raycaster().cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+        out[rows] = np.where(np.isfinite(t), top - t + oz, np.nan)
+    return out
 
 
 def truth_dtm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) -> np.ndarray:
@@ -1028,8 +1046,10 @@ def truth_dtm(city: SyntheticCity, transform: Affine, shape: tuple[int, int]) ->
     (rows, cols) float32
         World heights.
     """
-    x, y = _cell_centres(transform, shape)
-    return city.ground_height(x, y).astype(np.float32)
+    out = np.empty(shape, np.float32)
+    for rows in row_blocks(shape):
+        out[rows] = city.ground_height(*cell_centres(transform, shape, rows))
+    return out
 
 
 def truth_disparity(city: SyntheticCity, pair, offset) -> np.ndarray:

@@ -46,9 +46,11 @@ from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.io import atomic_path
 from recon3d.synthetic.city import (
     SyntheticCity,
+    cell_centres,
     checkpoints,
     make_city,
     nice_cell_size,
+    row_blocks,
     truth_dsm,
     truth_dtm,
 )
@@ -366,17 +368,17 @@ def views(city: SyntheticCity, cameras, surface: np.ndarray, transform) -> np.nd
     transform : affine.Affine
         Its world grid.
     """
-    rows, cols = surface.shape
-    c, r = np.meshgrid(np.arange(cols) + 0.5, np.arange(rows) + 0.5)
-    x = transform.c + c * transform.a + r * transform.b
-    y = transform.f + c * transform.d + r * transform.e
-    local = np.column_stack([x.ravel(), y.ravel(), np.nan_to_num(surface.ravel())]) - np.asarray(city.origin)
-    count = np.zeros(rows * cols, np.float32)
-    for cam in cameras:
-        uv, depth = cam.project(local)
-        count += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
-    count[~np.isfinite(surface.ravel())] = 0
-    return count.reshape(rows, cols)
+    count = np.zeros(surface.shape, np.float32)
+    for rows in row_blocks(surface.shape):
+        x, y = cell_centres(transform, surface.shape, rows)
+        z = surface[rows]
+        local = np.column_stack([x.ravel(), y.ravel(), np.nan_to_num(z.ravel())]) - np.asarray(city.origin)
+        seen = count[rows].reshape(-1)  # a view: the block's counts in place
+        for cam in cameras:
+            uv, depth = cam.project(local)
+            seen += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+        seen[~np.isfinite(z.ravel())] = 0
+    return count
 
 
 def _write_truth(folder: Path, city: SyntheticCity, cell: float, cameras) -> None:
