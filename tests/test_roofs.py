@@ -426,6 +426,30 @@ def test_roof_part_with_a_neck_snapping_would_close():
     assert check_solid(solid) == []
 
 
+def test_pair_midpoints_of_labelled_points():
+    """Midpoints of close points with different labels, grouped by label pair: the same
+    groups as one mask per pair, and none (not a crash) when no two labels touch, as on
+    a sparse stereo roof whose two planes lie apart (it cost a building its LoD2.2)."""
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0, 20, (400, 2))
+    labels = np.where(rng.random(400) < 0.1, -1, (xy[:, 0] // 7).astype(int) + 3 * (xy[:, 1] > 10))
+    got = partition._pair_midpoints(xy, labels, 1.0)
+    keep = labels >= 0
+    pts, lab = xy[keep], labels[keep]
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(pts).query_pairs(1.5, output_type="ndarray")
+    pairs = pairs[lab[pairs[:, 0]] != lab[pairs[:, 1]]]
+    want = {}
+    for i, j in pairs:
+        want.setdefault((min(lab[i], lab[j]), max(lab[i], lab[j])), []).append(0.5 * (pts[i] + pts[j]))
+    assert sorted(got) == sorted(want) and len(want) >= 5
+    for key, mids in want.items():
+        np.testing.assert_array_equal(got[key], np.array(mids))
+    apart = np.array([[0.0, 0.0], [0.5, 0.0], [5.0, 0.0], [5.5, 0.0]])
+    assert partition._pair_midpoints(apart, np.array([0, 0, 1, 1]), 1.0) == {}
+
+
 def test_invalid_lod22_is_retried_without_small_parts(monkeypatch):
     """A LoD2.2 shell that fails the mesh check is built once more with the parts under
     a 2 x 2 block of grid cells merged, before falling back to LoD1.3 (on a 4 x 4

@@ -124,6 +124,8 @@ def _pair_midpoints(xy, labels, cell) -> dict[tuple[int, int], np.ndarray]:
         return {}
     la, lb = lab[pairs[:, 0]], lab[pairs[:, 1]]
     diff = la != lb
+    if not diff.any():  # labels apart from each other by more than the reach
+        return {}
     pairs, la, lb = pairs[diff], la[diff], lb[diff]
     mid = 0.5 * (pts[pairs[:, 0]] + pts[pairs[:, 1]])
     span = int(lab.max()) + 1
