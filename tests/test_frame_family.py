@@ -22,8 +22,8 @@ from conftest import copy_scene, run_fails
 from recon3d.cli import cli
 from recon3d.errors import InputError
 from recon3d.synthetic.family import CONFIGURATIONS
-from recon3d.synthetic.scene import write_block_scene
-from recon3d.synthetic.score import score_stereo
+from recon3d.synthetic.scene import scene_city, write_block_scene
+from recon3d.synthetic.score import _visible_share, score_stereo
 
 WIDTH = 400
 
@@ -75,6 +75,13 @@ def test_survey_against_truth(surveys, name):
     # the product's own view of the common area agrees with the truth's (its area leaves
     # out the image borders and the ground a roof at the border hides: it fills more of it)
     assert 0.0 <= state.auto["stereo"]["common_area"]["filled_percent"] - score["coverage"] <= 8.0
+    # its split of its common area into matched, hidden from one image and missed agrees
+    # with the truth's visibility of the same cells (judged on the product DSM, it finds
+    # a little less hidden)
+    area = state.auto["stereo"]["common_area"]
+    visible = _visible_share(folder, scene_city(folder), state.dsm, state.common_area)
+    assert area["matched_of_visible_percent"] >= 85.0, area
+    assert -3.0 <= area["observed_percent"] + area["missed_percent"] - visible <= 10.0, (area, visible)
 
 
 @pytest.mark.slow
@@ -152,6 +159,34 @@ def test_lost_coverage_is_a_warning_naming_the_area(small_scene, tmp_path, monke
     assert record["warnings"] == report["warnings"]
     assert any("the DSM fills" in w for w in record["warnings"])
     assert record["chosen"]["stereo"]["pairs"][0]["self_check"]["coverage_percent"] < 70
+
+
+def test_matching_that_fills_what_both_images_see_is_a_warning(small_scene, tmp_path, monkeypatch):
+    """A matcher that fills in half the pair at one guessed height instead of matching
+    it (texture-poor or repetitive surfaces) leaves no hole, so the DSM coverage looks
+    complete: the share matched of what both images see unhidden tells, on the terminal
+    and in run.json."""
+    import recon3d.stereo.match as match_module
+
+    original = match_module.match
+
+    def half_guessed(left, right, params, **kw):
+        result = original(left, right, params, **kw)
+        w = result.disparity.shape[1]
+        result.disparity[:, w // 2:] = np.nanmedian(result.disparity)
+        result.filled[:, w // 2:] = True
+        return result
+
+    monkeypatch.setattr(match_module, "match", half_guessed)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["run", str(small_scene), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    record = json.loads((out / "run.json").read_text())
+    area = record["chosen"]["stereo"]["common_area"]
+    assert area["filled_percent"] >= 95.0  # no hole to warn of
+    assert area["matched_of_visible_percent"] < 70.0 and area["missed_percent"] > 20.0, area
+    assert any("of the area both images of a pair see unhidden" in w for w in record["warnings"])
+    assert "see unhidden" in result.output
 
 
 def test_reprojection_check_catches_an_inconsistent_rectification(small_scene):

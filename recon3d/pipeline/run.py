@@ -720,6 +720,7 @@ def make_dtm(r: Run) -> None:
         dtm.data[~np.isfinite(sf.dsm.data)] = np.nan
     elif sf.unobserved is not None:
         _lower_unseen_guesses(r, dtm, noise)
+        _check_matched_in_view(r, noise)
     r.terrain.dtm = dtm
     r.terrain.ndsm = dtm_stage.make_ndsm(sf.dsm, dtm)
 
@@ -739,6 +740,29 @@ def _lower_unseen_guesses(r: Run, dtm: Raster, noise: float) -> None:
         "value": int(lower.sum()),
         "reason": "cells no pixel matched, filled in at a height both images of a pair would have seen: set to the DTM",
     }
+
+
+def _check_matched_in_view(r: Run, noise: float) -> None:
+    """Frame stereo: the common area split into matched, hidden from one image and
+    missed by the matcher (on the final DSM); a warning when the matcher matched less
+    than :data:`~recon3d.stereo.coverage.MIN_MATCHED_OF_VISIBLE` percent of what both
+    images see."""
+    from recon3d.stereo import coverage
+
+    sf, u = r.surface, r.units
+    if r.stereo != "frame" or sf.common_area is None:
+        return
+    matched = np.isfinite(sf.dsm.data) & ~sf.filled & ~sf.unobserved
+    split = coverage.unmatched_in_view(r.source.scene, r.source.stereo["pairs"], sf.dsm, sf.common_area, matched,
+                                       tolerance=max(u.height(0.5), 3.0 * noise))
+    r.auto["stereo"]["common_area"].update(split)
+    if split["matched_of_visible_percent"] < coverage.MIN_MATCHED_OF_VISIBLE:
+        r.warn(
+            f"the matcher matched {split['matched_of_visible_percent']:.0f} % of the area both images of a pair see "
+            f"unhidden (expected >= {coverage.MIN_MATCHED_OF_VISIBLE:.0f} %): {split['missed_percent']:.0f} % of the "
+            "common area is filled in although both images show it (texture-poor or repetitive surfaces, "
+            "a wrong disparity range or orientation)"
+        )
 
 
 def classify_vegetation(r: Run) -> None:

@@ -359,7 +359,9 @@ def _stereo_section(stereo: dict | None) -> str:
     if area:
         facts += [("area both images of a pair see (m²)", _fmt_area(area.get("area_m2"))),
                   ("of it filled in the DSM %", fmt_pct(area.get("filled_percent"))),
-                  ("of it matched (not filled in) %", fmt_pct(area.get("observed_percent")))]
+                  ("of it matched (not filled in) %", fmt_pct(area.get("observed_percent"))),
+                  ("of it hidden from one image (estimated on the DSM) %", fmt_pct(area.get("hidden_percent"))),
+                  ("matched of what both images see %", fmt_pct(area.get("matched_of_visible_percent")))]
     out.append(_kv(facts))
     out.append("<p class=small>Self-check: the dense result against the pair's own sparse points (those both images "
                "observe): covered share, height distance, and reprojection into both original images.</p>")
