@@ -6,6 +6,9 @@ cameras, the plain OpenCV pipeline a user would otherwise write
 (``cv2.stereoRectify`` + ``cv2.StereoSGBM`` + highest point per cell, images turned 90
 degrees when the base runs along the columns), and scores both against the truth
 (:mod:`recon3d.synthetic.score`). Prints one table; ``--json`` keeps every figure.
+Columns: ``match%`` the truth's common area recon3d matched (not filled in), ``vis%``
+the share of it both images see unhidden (an upper bound on ``match%``), ``m/vis%``
+recon3d's own estimate of matched of visible (run.json ``stereo.common_area``).
 
     .venv/bin/python scripts/bench_frame_stereo.py                 # full size, 9 named + 4 random
     .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
@@ -137,6 +140,7 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
         score["seconds"] = round(time.perf_counter() - t, 2)
         score["stereo_seconds"] = state.timings.get("stereo")
         score["warnings"] = state.warnings
+        score["matched_of_visible"] = state.auto["stereo"]["common_area"].get("matched_of_visible_percent")
         score["pairs"] = [{k: p.get(k) for k in ("pair", "matched_percent", "self_check")} for p in state.auto["stereo"]["pairs"]]
         row[name] = score
         cell = state.dsm.resolution
@@ -161,7 +165,8 @@ def _ground_on(dsm: Raster, truth: Path) -> float | None:
 
 
 COLUMNS = [
-    ("coverage", "cover%"), ("observed", "match%"), ("visible", "vis%"), ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
+    ("coverage", "cover%"), ("observed", "match%"), ("visible", "vis%"), ("matched_of_visible", "m/vis%"),
+    ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
     ("ground_rms", "gndDTM"), ("roof_rms", "roof"), ("footprint_completeness", "compl%"),
     ("footprint_correctness", "corr%"), ("seconds", "s"),
 ]
