@@ -134,24 +134,32 @@ def test_sparse_points_that_contradict_the_images_stop_the_run(small_scene, tmp_
     run_fails([folder], tmp_path, "s1_1.png-s1_2.png", "sparse points", "ground sample distances")
 
 
-def test_lost_coverage_is_a_warning_naming_the_area(small_scene, tmp_path, monkeypatch):
-    """Matching that leaves half the common area empty (here a matcher made to fail on
-    the right half) warns on the terminal, in run.json and in report.json."""
+def _run_half_lost(scene, tmp_path, monkeypatch, *, guessed: bool):
+    """``recon3d run`` on ``scene`` with a matcher that loses the right half of every
+    pair: left empty, or (``guessed``) filled in at one height. Returns the CLI result
+    and the output folder."""
     import recon3d.stereo.match as match_module
 
     original = match_module.match
 
-    def half_blind(left, right, params, **kw):
+    def half_lost(left, right, params, **kw):
         result = original(left, right, params, **kw)
         w = result.disparity.shape[1]
-        result.disparity[:, w // 2:] = np.nan
-        result.filled[:, w // 2:] = False
+        result.disparity[:, w // 2:] = np.nanmedian(result.disparity) if guessed else np.nan
+        result.filled[:, w // 2:] = guessed
         return result
 
-    monkeypatch.setattr(match_module, "match", half_blind)
+    monkeypatch.setattr(match_module, "match", half_lost)
     out = tmp_path / "out"
-    result = CliRunner().invoke(cli, ["run", str(small_scene), "-o", str(out)])
+    result = CliRunner().invoke(cli, ["run", str(scene), "-o", str(out)])
     assert result.exit_code == 0, result.output
+    return result, out
+
+
+def test_lost_coverage_is_a_warning_naming_the_area(small_scene, tmp_path, monkeypatch):
+    """Matching that leaves half the common area empty (here a matcher made to fail on
+    the right half) warns on the terminal, in run.json and in report.json."""
+    result, out = _run_half_lost(small_scene, tmp_path, monkeypatch, guessed=False)
     assert "sparse points both images observe" in result.output and "WARNING" in result.output
     record = json.loads((out / "run.json").read_text())
     report = json.loads((out / "report.json").read_text())
@@ -166,21 +174,7 @@ def test_matching_that_fills_what_both_images_see_is_a_warning(small_scene, tmp_
     it (texture-poor or repetitive surfaces) leaves no hole, so the DSM coverage looks
     complete: the share matched of what both images see unhidden tells, on the terminal
     and in run.json."""
-    import recon3d.stereo.match as match_module
-
-    original = match_module.match
-
-    def half_guessed(left, right, params, **kw):
-        result = original(left, right, params, **kw)
-        w = result.disparity.shape[1]
-        result.disparity[:, w // 2:] = np.nanmedian(result.disparity)
-        result.filled[:, w // 2:] = True
-        return result
-
-    monkeypatch.setattr(match_module, "match", half_guessed)
-    out = tmp_path / "out"
-    result = CliRunner().invoke(cli, ["run", str(small_scene), "-o", str(out)])
-    assert result.exit_code == 0, result.output
+    result, out = _run_half_lost(small_scene, tmp_path, monkeypatch, guessed=True)
     record = json.loads((out / "run.json").read_text())
     area = record["chosen"]["stereo"]["common_area"]
     assert area["filled_percent"] >= 95.0  # no hole to warn of
