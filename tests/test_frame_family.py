@@ -183,6 +183,27 @@ def test_matching_that_fills_what_both_images_see_is_a_warning(small_scene, tmp_
     assert "see unhidden" in result.output
 
 
+def test_a_bug_in_roof_modelling_is_a_warning_naming_the_buildings(small_scene, tmp_path, monkeypatch):
+    """An unexpected error while modelling a roof costs the building only its LoD2.2
+    (it keeps LoD1), and the run says so on the terminal and in run.json, naming it."""
+    from recon3d.buildings import lod
+
+    def broken(*args, **kwargs):
+        raise ZeroDivisionError("planted")
+
+    monkeypatch.setattr(lod, "_lod22", broken)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["run", str(small_scene), "-o", str(out), "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    record = json.loads((out / "run.json").read_text())
+    city = json.loads((out / "buildings.city.json").read_text())["CityObjects"]
+    broken_ids = sorted(k for k, o in city.items() if o.get("attributes", {}).get("reason") == "internal_error")
+    assert broken_ids
+    warning = [w for w in record["warnings"] if "internal_error" in w]
+    assert len(warning) == 1 and f"{len(broken_ids)} building(s)" in warning[0] and broken_ids[0] in warning[0]
+    assert "unexpected error in roof modelling" in result.output
+
+
 def test_reprojection_check_catches_an_inconsistent_rectification(small_scene):
     from recon3d.io.colmap import read_scene
     from recon3d.stereo.check import check_pair, verdict

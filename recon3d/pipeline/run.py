@@ -979,6 +979,10 @@ def build_solids(r: Run) -> None:
     failed = [b.id for b in city if not b.solids]
     if failed:
         r.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
+    broken = [b.id for b in city if b.reason == "internal_error"]
+    if broken:  # a bug in recon3d, not in the data: the traceback went to the log (of a worker)
+        r.warn(f"{len(broken)} building(s) kept a lower LoD after an unexpected error in roof modelling "
+               f"(reason internal_error; please report it with the log): {', '.join(broken[:20])}")
     missed = sorted(
         ((b.attributes["roof_unmodelled_area_m2"], b.id) for b in city if b.attributes.get("roof_unmodelled_parts")),
         reverse=True,
