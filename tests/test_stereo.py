@@ -296,13 +296,16 @@ def test_grid_stereo_outvotes_spill_and_guesses():
         [1.5, 1.5, 5.0], [1.5, 1.6, 9.0],
         # cell (1, 0): a guess only
         [0.5, 0.5, 7.0],
-        # cell (1, 1): two pairs, median of two is their mean
+        # cell (1, 1): two pairs that disagree: the higher, a height one of them saw
         [1.5, 0.5, 10.0], [1.4, 0.4, 12.0],
     ])
     observed = np.array([1, 1, 1, 1, 1, 0, 0, 1, 1], bool)
     source = np.array([1, 1, 2, 3, 1, 1, 1, 1, 2])
     grid = grid_stereo(pts, transform, (2, 2), observed=observed, source=source)
-    np.testing.assert_allclose(grid, [[11.0, 5.0], [7.0, 11.0]])
+    np.testing.assert_allclose(grid, [[11.0, 5.0], [7.0, 12.0]])
+    # satellite pairs (the median of each pair's points) still average two: noise, not surfaces
+    per_pair_median = grid_stereo(pts, transform, (2, 2), observed=observed, source=source, per_source="median")
+    np.testing.assert_allclose(per_pair_median, [[11.0, 5.0], [7.0, 11.0]])
     single = grid_stereo(pts, transform, (2, 2), observed=observed)  # one source: its highest observation
     np.testing.assert_allclose(single, [[30.0, 5.0], [7.0, 12.0]])
 

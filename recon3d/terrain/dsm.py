@@ -190,9 +190,12 @@ def grid_stereo(
 
     Each source (a stereo pair) gives the highest of its observed points in a cell, and
     the cell takes the median over the sources that observed it, so one pair's spill
-    at a building edge is outvoted by the others. A cell no source observed takes its
-    highest guessed point (a disparity filled in, not confirmed by the images): a guess
-    never outweighs an observation.
+    at a building edge is outvoted by the others. Of an even number of sources, frame
+    stereo (``per_source="max"``) takes the higher of the two middle values, not their
+    mean: two pairs that disagree (a roof, and a long-base pair's match cut short by its
+    image edge, below the ground) would average to a height neither saw. A cell no
+    source observed takes its highest guessed point (a disparity filled in, not
+    confirmed by the images): a guess never outweighs an observation.
 
     Parameters
     ----------
@@ -238,7 +241,10 @@ def grid_stereo(
     cell, z = cell[order], z[order]
     start = np.r_[0, np.flatnonzero(cell[1:] != cell[:-1]) + 1]
     count = np.diff(np.r_[start, len(cell)])
-    median = 0.5 * (z[start + (count - 1) // 2] + z[start + count // 2])
+    if per_source == "max":  # of an even count, the higher middle value: a height a pair saw
+        median = z[start + count // 2]
+    else:
+        median = 0.5 * (z[start + (count - 1) // 2] + z[start + count // 2])
     out.reshape(-1)[cell[start]] = median
     return out
 
