@@ -158,7 +158,9 @@ def test_busy_port_is_replaced_and_ctrl_c_stops(delft_run):
         port = busy.getsockname()[1]
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         view = subprocess.Popen([sys.executable, "-m", "recon3d", "view", str(delft_run.out_dir), "--port", str(port),
-                                 "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                                 "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                                # Ctrl-C acts even when the suite runs as a background job, which ignores it
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             with selectors.DefaultSelector() as waiting:  # the first line, or fail rather than hang
                 waiting.register(view.stdout, selectors.EVENT_READ)
