@@ -157,6 +157,10 @@ class GroundConfig:
         uses 0.5 m, or three times the measured noise when that is larger.
     scalar : float
         Extra tolerance per unit of local slope times cell size (SMRF's "scalar").
+    tie_point_margin : float
+        Frame stereo: a lowest point more than this (m) below every tie point around it
+        is a mismatch and does not shape the terrain
+        (``recon3d.terrain.ground.below_tie_points``); ``inf`` turns the test off.
     """
 
     method: str = "auto"
@@ -165,6 +169,7 @@ class GroundConfig:
     slope: float | None = None
     threshold: float | None = None
     scalar: float = 1.25
+    tie_point_margin: float = 10.0
 
     def __post_init__(self) -> None:
         methods = ("auto", "smrf", "tophat", "drape", "provider")

@@ -144,7 +144,11 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
         score["pairs"] = [{k: p.get(k) for k in ("pair", "matched_percent", "self_check")} for p in state.auto["stereo"]["pairs"]]
         row[name] = score
         cell = state.dsm.resolution
-    dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
+    try:
+        dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
+    except cv2.error as exc:  # e.g. SGBM refuses a disparity range wider than the rectified image
+        row["opencv"] = {"error": " ".join(str(exc).split())[:300]}
+        return row
     score = score_stereo(folder, dsm, city=city)
     score["ground_rms_dsm"] = _ground_on(dsm, truth)
     score["seconds"] = round(seconds, 2)
