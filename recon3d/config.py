@@ -143,8 +143,9 @@ class GroundConfig:
     Attributes
     ----------
     method : {"auto", "smrf", "tophat", "drape", "provider"}
-        "auto" picks "smrf" for LiDAR and "tophat" for clouds without return numbers
-        (stereo); "provider" trusts the input's class 2. See ``recon3d.terrain.ground``.
+        "auto" picks "smrf" for LiDAR and for clouds without return numbers (stereo)
+        whose surface noise is under 0.2 m, "tophat" for noisier ones; "provider"
+        trusts the input's class 2. See ``recon3d.terrain.ground``.
     cell : float or None
         Cell of the minimum surface in metres; None uses 1 m, or the DSM cell if coarser.
     max_window : float or None

@@ -88,6 +88,16 @@ def test_stereo_like_surface(lidar):
     assert rms <= {"ign": 0.3, "delft": 0.5, "autzen": 1.0}[name]
 
 
+def test_clean_surface_without_returns_is_filtered_with_smrf(lidar):
+    """0.1 m of noise and no return numbers: SMRF, whose DTM is within a few decimetres."""
+    name, cloud, units, grid, ref_dtm = lidar
+    stereo = _stereo_like(cloud, grid, units, 0.1)
+    result = classify_ground(stereo, GroundConfig(), units, grid.resolution)
+    assert result.params["method"]["value"] == "smrf" and "noise" in result.params["method"]["reason"]
+    # measured: ign 0.075, delft 0.19, autzen 0.66 (top-hat: 0.088, 0.28, 0.58)
+    assert _dtm_rms(result, stereo, units, grid, ref_dtm) <= {"ign": 0.1, "delft": 0.25, "autzen": 0.75}[name]
+
+
 @pytest.mark.parametrize("tilt", [0.3, 1.0])
 def test_steep_terrain_keeps_buildings_off_the_ground(tilt):
     """The IGN village on a 30 % and a 45-degree slope: roofs must not become ground."""

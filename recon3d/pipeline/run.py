@@ -669,13 +669,14 @@ def classify_ground(r: Run) -> None:
     else:
         if s.count < 3:
             raise InputError(f"the point cloud has {s.count} point(s); ground filtering needs at least 3")
-        method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes)
-        params["method"] = {"value": method, "reason": why}
+        params["method"] = None  # chosen once the surface's noise is measured
         cell, why = ground_stage.surface_cell(cfg, u, r.grid.transform.a)
         params["cell"] = {"value": cell, "reason": why}
         if s.quality_cut is not None:
             params["quality_cut"] = {"value": s.quality_cut, "reason": ground_stage.QUALITY_CUT_REASON}
         surface = ground_stage.minimum_surface(*_under_tie_points_removed(r, params), cfg, u, params)
+        method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes, surface.noise * u.vertical)
+        params["method"] = {"value": method, "reason": why}
         terrain = ground_stage.terrain(surface, method, u)
         noise = surface.noise
         params.update(ground_stage.ground_tolerances(cfg, u, noise)[2])
