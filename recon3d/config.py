@@ -77,6 +77,10 @@ class StereoConfig:
         upright windows only; None: 0.5 for pairs whose base-to-height ratio is
         ``SLANT_BASE_TO_HEIGHT`` or more (a 45 degree roof face then changes disparity by
         half a pixel per pixel or more), else 0.
+    tie_point_margin : float
+        Frame stereo: a dense point more than this many metres below every tie point
+        (sparse point) around it is a mismatch and is removed
+        (``recon3d.stereo.check.under_tie_points``); ``inf`` turns the test off.
     """
 
     max_disparities: int = 384
@@ -91,6 +95,7 @@ class StereoConfig:
     max_object_height: float | None = None
     max_partners: int = 4
     slant: float | None = None
+    tie_point_margin: float = 10.0
 
     def __post_init__(self) -> None:
         if self.engine not in ("census", "sgbm"):
@@ -158,10 +163,6 @@ class GroundConfig:
         uses 0.5 m, or three times the measured noise when that is larger.
     scalar : float
         Extra tolerance per unit of local slope times cell size (SMRF's "scalar").
-    tie_point_margin : float
-        Frame stereo: a lowest point more than this (m) below every tie point around it
-        is a mismatch and does not shape the terrain
-        (``recon3d.terrain.ground.below_tie_points``); ``inf`` turns the test off.
     """
 
     method: str = "auto"
@@ -170,7 +171,6 @@ class GroundConfig:
     slope: float | None = None
     threshold: float | None = None
     scalar: float = 1.25
-    tie_point_margin: float = 10.0
 
     def __post_init__(self) -> None:
         methods = ("auto", "smrf", "tophat", "drape", "provider")

@@ -216,33 +216,3 @@ def test_gap_fill_holdout_on_provider_ground(lidar):
     rms = float(np.sqrt(np.mean((filled[hidden] - mean[hidden]) ** 2))) * units.vertical
     assert rms < {"delft": 0.08, "ign": 0.11, "autzen": 0.33}[name]
 
-
-def test_lowest_points_far_below_every_tie_point_are_flagged():
-    """On a 10 % slope with tie points on the ground and on roofs, a cluster of
-    mismatches 30 m low is flagged, the terrain (and a 4 m pit) is not, nor is a low
-    cluster with no tie point within the radius."""
-    from affine import Affine
-
-    from recon3d.terrain.ground import below_tie_points, tie_point_radius
-
-    rng = np.random.default_rng(5)
-    transform = Affine(1.0, 0.0, 1000.0, 0.0, -1.0, 2300.0)  # 300 x 300 cells of 1 m
-    rows, cols = np.mgrid[0:300, 0:300]
-    x, y = 1000.0 + cols + 0.5, 2300.0 - rows - 0.5
-    terrain = 50.0 + 0.1 * (x - 1000.0)
-    zmin = terrain + rng.normal(0.0, 0.2, terrain.shape)
-    zmin[rng.random(zmin.shape) < 0.3] = np.nan  # hidden cells
-    zmin[100:110, 50:60] = terrain[100:110, 50:60] - 30.0  # mismatches among tie points
-    zmin[200:205, 100:105] = terrain[200:205, 100:105] - 4.0  # a pit: within the margin
-    zmin[150:160, 280:290] = terrain[150:160, 280:290] - 30.0  # low, but no tie point near
-    # tie points west of x = 1200 only, a third of them on 12 m roofs
-    tx, ty = rng.uniform(1000.0, 1200.0, 300), rng.uniform(2000.0, 2300.0, 300)
-    tz = 50.0 + 0.1 * (tx - 1000.0) + np.where(rng.random(300) < 1 / 3, 12.0, 0.0)
-    ties = np.column_stack([tx, ty, tz])
-    radius, why = tie_point_radius(ties, crs_units(parse_crs("EPSG:25832")))
-    assert radius == pytest.approx(60.0) and "spacing" in why
-    below = below_tie_points(zmin, transform, ties, radius=radius, margin=10.0)
-    planted = np.zeros(zmin.shape, bool)
-    planted[100:110, 50:60] = True
-    assert below[planted].all()
-    assert not below[~planted].any()

@@ -256,7 +256,8 @@ def match_frame(source: Source, config, *, warn, progress) -> PointCloud:
 
     bounds = matching_constraints(source.scene, config.stereo, source.units, dem=source.dem,
                                   footprints=source.footprints, constraints=source.constraints)
-    cloud, source.stereo = dense_cloud(source.scene, config.stereo, bounds=bounds, warn=warn, progress=progress)
+    cloud, source.stereo = dense_cloud(source.scene, config.stereo, bounds=bounds, warn=warn, progress=progress,
+                                       units=source.units)
     return cloud
 
 

@@ -32,7 +32,6 @@ from typing import Any
 
 import numpy as np
 import pyproj
-from affine import Affine
 
 from recon3d import __version__
 from recon3d.buildings import align, blocks, detect, lod, vegetation
@@ -674,7 +673,7 @@ def classify_ground(r: Run) -> None:
         params["cell"] = {"value": cell, "reason": why}
         if s.quality_cut is not None:
             params["quality_cut"] = {"value": s.quality_cut, "reason": ground_stage.QUALITY_CUT_REASON}
-        surface = ground_stage.minimum_surface(*_under_tie_points_removed(r, params), cfg, u, params)
+        surface = ground_stage.minimum_surface(*r.surface.ground_surface, cfg, u, params)
         method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes, surface.noise * u.vertical)
         params["method"] = {"value": method, "reason": why}
         terrain = ground_stage.terrain(surface, method, u)
@@ -703,27 +702,6 @@ def classify_ground(r: Run) -> None:
         from recon3d.quality import evaluate
 
         r.report["ground_filter"] = evaluate.filter_scores(counts)
-
-
-def _under_tie_points_removed(r: Run, params: dict) -> tuple[np.ndarray, Affine]:
-    """The ground filter's lowest points per cell and their transform, stereo cells far
-    below every tie point around them left out (:func:`recon3d.terrain.ground.below_tie_points`)."""
-    zmin, transform = r.surface.ground_surface
-    scene, margin = r.source.scene, r.config.ground.tie_point_margin
-    if r.stereo != "frame" or not math.isfinite(margin) or not len(scene.sparse):
-        return zmin, transform
-    tie_points = scene.sparse + scene.offset
-    radius, why = ground_stage.tie_point_radius(tie_points, r.units)
-    below = ground_stage.below_tie_points(zmin, transform, tie_points, radius=radius, margin=r.units.height(margin))
-    params["under_tie_points"] = {
-        "value": int(below.sum()), "of": int(np.isfinite(zmin).sum()),
-        "radius": round(radius * r.units.horizontal, 1), "margin": margin,
-        "reason": f"cells whose lowest point lies more than {margin:g} m below every tie point within the radius "
-                  f"({why}): mismatches, left out of the ground filter",
-    }
-    if below.any():
-        log.info("ground: %d cells more than %g m below the tie points around them left out", int(below.sum()), margin)
-    return np.where(below, np.nan, zmin), transform
 
 
 def make_dtm(r: Run) -> None:

@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 
 import cv2
 import numpy as np
 
 from recon3d.config import StereoConfig
+from recon3d.core.geo import Units
 from recon3d.core.pointcloud import PointCloud
 from recon3d.errors import InputError
 from recon3d.io.colmap import StereoScene
-from recon3d.stereo.check import check_pair, verdict
+from recon3d.stereo.check import check_pair, tie_point_radius, under_tie_points, verdict
 from recon3d.stereo.fuse import fuse
 from recon3d.stereo.rectify import RectifiedPair, rectify_pair, select_pairs
 from recon3d.stereo.triangulate import triangulate
@@ -29,8 +31,10 @@ def dense_cloud(
     bounds: Callable[[RectifiedPair], tuple[np.ndarray, np.ndarray, np.ndarray | None]] | None = None,
     warn: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    units: Units | None = None,
 ) -> tuple[PointCloud, dict]:
-    """Match every usable pair of the scene, check each against the sparse points, fuse.
+    """Match every usable pair of the scene, check each against the sparse points, fuse,
+    and remove the fused points far below every tie point around them.
 
     Parameters
     ----------
@@ -43,6 +47,8 @@ def dense_cloud(
         Receives the warnings of the self-check (default: logged).
     progress : callable, optional
         Receives "pair k/n" as each pair starts.
+    units : Units, optional
+        Of the scene's CRS (default: metres).
 
     Returns
     -------
@@ -82,10 +88,33 @@ def dense_cloud(
         record["points_fused"] = n
         record["fused_share_percent"] = round(100.0 * n / max(1, len(cloud)), 2)
     cloud = PointCloud(cloud.xyz + scene.offset, cloud.attributes, scene.crs)
+    cloud = _without_points_under_tie_points(cloud, scene, config, units or Units(), report)
     report["pair_count"] = len(pairs)
     report["ground_sample_distance"] = round(gsd, 4)
     report["points"] = len(cloud)
     return cloud, report
+
+
+def _without_points_under_tie_points(cloud: PointCloud, scene: StereoScene, config: StereoConfig, units: Units,
+                                     report: dict) -> PointCloud:
+    """The fused cloud less the points more than ``config.tie_point_margin`` below every
+    tie point around them (:func:`recon3d.stereo.check.under_tie_points`), counted in
+    ``report["under_tie_points"]``."""
+    margin = config.tie_point_margin
+    if not math.isfinite(margin) or not len(scene.sparse):
+        return cloud
+    ties = scene.sparse + scene.offset
+    radius, why = tie_point_radius(ties, units)
+    under = under_tie_points(cloud.xyz, ties, radius=radius, margin=units.height(margin))
+    report["under_tie_points"] = {
+        "value": int(under.sum()), "radius": round(radius * units.horizontal, 1), "margin": margin,
+        "reason": f"points more than {margin:g} m below every tie point within the radius ({why}): "
+                  "mismatches, removed",
+    }
+    if under.any():
+        log.info("%d dense points more than %g m below the tie points around them removed", int(under.sum()), margin)
+        cloud = cloud[~under]
+    return cloud
 
 
 def matching_constraints(scene: StereoScene, config: StereoConfig, units, *, dem=None, footprints=None,

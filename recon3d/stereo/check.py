@@ -16,6 +16,12 @@ the images of its track. Dense matching must agree with them. For every pair,
   the pixels the rectified images were resampled from. Rectification and triangulation
   must agree to a small fraction of a pixel.
 
+The tie points also bound the dense cloud from below (:func:`under_tie_points`): they
+lie on the surface, ground or objects, and in any neighbourhood wider than a roof some
+lie on the ground, so a dense point far below every tie point around it is a mismatch.
+On a rendered hilly survey seven cells of such points under a hilltop sank the DTM by
+metres (ground check points 1.54 m RMS, 0.10 m without them).
+
 :func:`verdict` turns the figures into an error (the geometry contradicts the input:
 nothing is written) or a warning (part of the area is lost), with the pair and the
 figures named.
@@ -23,12 +29,20 @@ figures named.
 
 from __future__ import annotations
 
-import numpy as np
+import math
 
+import cv2
+import numpy as np
+import shapely
+from affine import Affine
+
+from recon3d.core.geo import Units
+from recon3d.core.raster import grid_for_bounds
 from recon3d.errors import InputError
 from recon3d.stereo.rectify import RectifiedPair
+from recon3d.terrain.dsm import grid_points
 
-__all__ = ["LIMITS", "check_pair", "verdict"]
+__all__ = ["LIMITS", "TIE_POINT_RADIUS", "check_pair", "tie_point_radius", "under_tie_points", "verdict"]
 
 #: Thresholds of :func:`verdict`: least coverage (percent, a warning below), largest
 #: median discrepancy (ground sample distances) and largest 95th percentile of the
@@ -164,3 +178,58 @@ def verdict(name: str, check: dict, limits: dict = LIMITS, *, offset=(0.0, 0.0, 
             f"{limits['coverage_percent']:.0f} %); {len(lost)} lie where nothing was matched{where}"
         )
     return None
+
+
+#: Least radius (m) around a point searched for tie points by :func:`under_tie_points`;
+#: :func:`tie_point_radius` widens it where the tie points are sparse.
+TIE_POINT_RADIUS = 60.0
+
+
+def tie_point_radius(tie_points: np.ndarray, units: Units) -> tuple[float, str]:
+    """Radius (CRS units) within which the ground holds tie points, and why.
+
+    Three tie point spacings (the square root of the area of their convex hull per
+    point), at least :data:`TIE_POINT_RADIUS`: wide enough that streets and yards, not
+    only roofs, hold tie points within it.
+    """
+    xy = np.asarray(tie_points, np.float64)[:, :2]
+    area = shapely.MultiPoint(xy).convex_hull.area if len(xy) >= 3 else 0.0
+    spacing = math.sqrt(area / len(xy)) if area > 0 else 0.0
+    radius = max(units.length(TIE_POINT_RADIUS), 3.0 * spacing)
+    why = (f"3 x the tie points' spacing ({spacing * units.horizontal:.1f} m), at least {TIE_POINT_RADIUS:.0f} m: "
+           "streets, not only roofs, hold tie points within it")
+    return radius, why
+
+
+def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, margin: float) -> np.ndarray:
+    """(n,) bool: points more than ``margin`` below every tie point within ``radius``.
+
+    The radius is rounded to cells of about ``radius / 8``. Points with no tie point
+    within it are never flagged.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+        Dense points.
+    tie_points : (m, 3) float
+        Sparse points, same coordinates.
+    radius, margin : float
+        CRS units.
+    """
+    xyz = np.asarray(xyz, np.float64)
+    under = np.zeros(len(xyz), bool)
+    if not len(xyz) or not len(tie_points):
+        return under
+    lo, hi = xyz[:, :2].min(axis=0) - radius, xyz[:, :2].max(axis=0) + radius  # tie points around the edge
+    step = radius / 8
+    transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], step)
+    lowest = grid_points(np.asarray(tie_points, np.float64), transform, shape, reducer="min")
+    k = math.ceil(radius / step)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    floor = cv2.erode(np.where(np.isfinite(lowest), lowest, np.inf).astype(np.float32), disc,
+                      borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    cols, rows = ~transform * (xyz[:, 0], xyz[:, 1])
+    rows = np.clip(np.floor(rows).astype(np.int64), 0, shape[0] - 1)
+    cols = np.clip(np.floor(cols).astype(np.int64), 0, shape[1] - 1)
+    floor = floor[rows, cols].astype(np.float64)
+    return np.isfinite(floor) & (xyz[:, 2] < floor - margin)  # inf: no tie point within the radius

@@ -18,12 +18,6 @@ removed, holes filled) and differs in how it finds the cells that are not terrai
     on the terrain without entering buildings. It needs no multiple returns and
     tolerates noise and holes.
 
-Stereo clouds come with tie points (the sparse points of the orientation), a sample of
-the surface the matcher cannot have invented: a lowest point far below every tie point
-around it is a mismatch, and :func:`below_tie_points` keeps it out of the minimum
-surface (a few clustered mismatches there pulled a rendered survey's DTM 36 m under
-its hilltop).
-
 The remaining terrain cells are interpolated into a provisional surface, and every
 point within a slope- and noise-dependent tolerance of it is ground.
 ``auto`` (the default) picks ``smrf`` for LiDAR (clouds with return numbers) and for
@@ -53,7 +47,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from affine import Affine
-import shapely
 from scipy import ndimage
 
 from recon3d.config import GroundConfig
@@ -68,8 +61,6 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "METHODS",
-    "TIE_POINT_RADIUS",
-    "below_tie_points",
     "GroundResult",
     "MinimumSurface",
     "classify_ground",
@@ -83,7 +74,6 @@ __all__ = [
     "surface_grid",
     "terrain",
     "terrain_gradient",
-    "tie_point_radius",
 ]
 
 
@@ -281,64 +271,6 @@ def lowest_points(
         keep &= score >= quality_cut
     xyz = cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
     return grid_points(xyz, transform, shape, reducer="min", origin=origin)
-
-
-#: Least radius (m) around a cell searched for tie points by :func:`below_tie_points`;
-#: :func:`tie_point_radius` widens it where the tie points are sparse.
-TIE_POINT_RADIUS = 60.0
-
-
-def tie_point_radius(tie_points: np.ndarray, units: Units) -> tuple[float, str]:
-    """Radius (CRS units) within which a cell has tie points on the ground, and why.
-
-    Three tie point spacings (the square root of the area of their convex hull per
-    point), at least :data:`TIE_POINT_RADIUS`: wide enough that streets and yards, not
-    only roofs, hold tie points within it.
-    """
-    xy = np.asarray(tie_points, np.float64)[:, :2]
-    area = shapely.MultiPoint(xy).convex_hull.area if len(xy) >= 3 else 0.0
-    spacing = math.sqrt(area / len(xy)) if area > 0 else 0.0
-    radius = max(units.length(TIE_POINT_RADIUS), 3.0 * spacing)
-    why = (f"3 x the tie points' spacing ({spacing * units.horizontal:.1f} m), at least {TIE_POINT_RADIUS:.0f} m: "
-           "streets, not only roofs, hold tie points within it")
-    return radius, why
-
-
-def below_tie_points(
-    zmin: np.ndarray, transform: Affine, tie_points: np.ndarray, *, radius: float, margin: float
-) -> np.ndarray:
-    """(rows, cols) bool: cells of the minimum surface more than ``margin`` below every
-    tie point within ``radius`` (about: the radius is rounded to cells of ``radius / 8``).
-
-    Tie points lie on the surface, ground or objects, and in any neighbourhood wider
-    than a roof some lie on the ground: terrain more than ``margin`` under the lowest of
-    them is a pit the orientation never saw, a lowest point there a mismatch. Cells
-    with no tie point within ``radius`` are never flagged.
-
-    Parameters
-    ----------
-    zmin : (rows, cols) float
-        Lowest point per cell (:func:`lowest_points`), NaN where none.
-    transform : Affine
-        Its grid's (north up).
-    tie_points : (n, 3) float
-        World coordinates, the CRS of ``transform``.
-    radius, margin : float
-        CRS units.
-    """
-    rows, cols = zmin.shape
-    step = max(1, int(radius / 8 / transform.a))  # coarse cells of about radius / 8
-    coarse = transform * Affine.scale(step)
-    shape = (-(-rows // step), -(-cols // step))
-    lowest = grid_points(np.asarray(tie_points, np.float64), coarse, shape, reducer="min")
-    k = math.ceil(radius / coarse.a)
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-    floor = cv2.erode(np.where(np.isfinite(lowest), lowest, np.inf).astype(np.float32), disc,
-                      borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-    floor = np.where(np.isfinite(floor), floor, np.nan)  # no tie point within the radius
-    floor = np.repeat(np.repeat(floor, step, axis=0), step, axis=1)[:rows, :cols]
-    with np.errstate(invalid="ignore"):
-        return zmin < floor.astype(np.float64) - margin
 
 
 def minimum_surface(
