@@ -34,7 +34,6 @@ import math
 import cv2
 import numpy as np
 import shapely
-from affine import Affine
 
 from recon3d.core.geo import Units
 from recon3d.core.raster import grid_for_bounds

@@ -210,9 +210,9 @@ def pick_method(config: GroundConfig, returns: bool, noise: float) -> tuple[str,
     numbers, SMRF below :data:`SMRF_MAX_NOISE`, the top-hat criteria above: on the
     survey family rendered at 400 px, SMRF brought two hilly surveys' ground check
     points from 4.40 and 1.82 m RMS to 0.12 and 0.13 m (the top-hat's 60 m opening
-    shaved their hilltops), and on LiDAR turned into stereo-like surfaces it had the
-    lower DTM error at 0.1 m of noise on two files of three, the top-hat at 0.3 and
-    0.5 m on all three (tests/test_ground.py).
+    shaved their hilltops), and on LiDAR turned into stereo-like surfaces (module
+    table) it had the lower DTM error at 0.1 m of noise on two files of three, the
+    top-hat at 0.3 m on two of three and at 0.5 m on all three.
     """
     if config.method != "auto":
         return config.method, "config"
