@@ -87,7 +87,7 @@ def test_survey_against_truth(surveys, name):
 @pytest.mark.slow
 def test_mismatches_under_a_hilltop_do_not_sink_the_dtm(tmp_path):
     """random_0 of the family at 1000 px (hilly, a hilltop at the edge of the data): a
-    few cells of mismatches more than 10 m under every tie point within 60 m pulled
+    few cells of mismatches more than 10 m under every tie point around them pulled
     the top-hat DTM metres under the hilltop (ground check points 1.54 m RMS, footprint
     correctness 88 %); removed from the cloud, 0.09 m and 97 % (SMRF, chosen since)."""
     from recon3d.pipeline.run import run
@@ -121,7 +121,7 @@ def test_points_far_below_every_tie_point_are_mismatches():
     tz = 50.0 + 0.1 * (tx - 1000.0) + np.where(rng.random(300) < 1 / 3, 12.0, 0.0)
     ties = np.column_stack([tx, ty, tz])
     radius, why = tie_point_radius(ties, Units())
-    assert radius == pytest.approx(60.0) and "spacing" in why
+    assert 30.0 <= radius <= 60.0 and "spacing" in why  # 3 tie point spacings here
     under = under_tie_points(np.column_stack([x, y, z]), ties, radius=radius, margin=10.0)
     assert under[mismatch].all()
     assert not under[~mismatch].any()
