@@ -146,9 +146,7 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     out["first_returns"] = np.int64(first.sum())
     rows, cols = cover(grid.bounds, ground_transform, ground_shape)
     out["zmin_origin"] = np.array([rows.start, cols.start])
-    # a filled-in disparity is a guess, not ground: the filter's lowest points are matched ones
-    ground_cloud = cloud[a["observed"] > 0] if spec.stereo and "observed" in a else cloud
-    out["zmin"] = ground_stage.lowest_points(ground_cloud, ground_transform, (rows.stop - rows.start, cols.stop - cols.start),
+    out["zmin"] = ground_stage.lowest_points(cloud, ground_transform, (rows.stop - rows.start, cols.stop - cols.start),
                                              quality_cut=spec.summary.quality_cut, origin=(rows.start, cols.start))
     seen = np.flatnonzero(first & keep)
     xy = cloud.xyz[seen, :2]

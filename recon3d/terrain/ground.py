@@ -260,12 +260,17 @@ def lowest_points(
 ) -> np.ndarray:
     """(rows, cols) float64 lowest trusted point per cell of the minimum surface's grid, NaN where none.
 
-    Points classified noise and stereo points scoring below ``quality_cut`` are not trusted.
+    Points classified noise, stereo points scoring below ``quality_cut`` and stereo
+    guesses (``observed`` 0: a filled-in disparity, which on a hillside filled from the
+    far, lower side lies metres under the ground) are not trusted.
     ``origin`` as in :func:`recon3d.terrain.dsm.grid_points`.
     """
     keep = np.ones(len(cloud), bool)
     if cloud.classification is not None:
         keep &= cloud.classification != ASPRS.NOISE
+    observed = cloud.attributes.get("observed")
+    if observed is not None:
+        keep &= observed > 0
     score = cloud.attributes.get("quality")
     if score is not None and quality_cut is not None:
         keep &= score >= quality_cut
