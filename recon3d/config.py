@@ -347,11 +347,15 @@ class OrthoConfig:
         Image difference (1 - NCC, 0 to 2) above which a DSM cell is doubtful.
     doubtful_area : float
         Smallest connected doubtful area (m2) listed in the report.
+    textures : bool
+        Also write buildings_textured.glb: the model's roofs textured from a true
+        orthophoto and its walls from the images (see ``recon3d.stereo.texture``).
     """
 
     surface: str = "dsm"
     doubtful_threshold: float = 0.6
     doubtful_area: float = 4.0
+    textures: bool = True
 
     def __post_init__(self) -> None:
         if self.surface not in ("dsm", "dtm", "model"):

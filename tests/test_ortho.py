@@ -137,3 +137,73 @@ def test_report_shows_the_orthophoto_and_the_doubtful_areas(ortho_run):
     assert all(np.isfinite(r["mean"]) and r["area"] > 0 for r in ortho_run.report["ortho"]["regions"])
     rows = re.findall(r"<tr><td data-v=\"([0-9.]+)\"", section)
     assert [float(v) for v in rows] == [r["area"] for r in regions]
+
+
+def _glb_parts(path):
+    """(image name, texture (h, w, 3) uint8, positions (n, 3) CRS local, uv (n, 2), faces (m, 3)) per
+    textured primitive of a GLB written by write_textured_glb, read by hand."""
+    import json
+    import struct
+
+    import cv2
+
+    from recon3d.io.gltf import GLTF_FROM_LOCAL
+
+    data = path.read_bytes()
+    n, _ = struct.unpack_from("<II", data, 12)
+    doc = json.loads(data[20:20 + n])
+    binary = data[28 + n:]
+
+    def view(index):
+        v = doc["bufferViews"][index]
+        return binary[v.get("byteOffset", 0):v.get("byteOffset", 0) + v["byteLength"]]
+
+    def array(index, dtype, width):
+        return np.frombuffer(view(doc["accessors"][index]["bufferView"]), dtype).reshape(-1, width)
+
+    images = [cv2.cvtColor(cv2.imdecode(np.frombuffer(view(i["bufferView"]), np.uint8), cv2.IMREAD_COLOR),
+                           cv2.COLOR_BGR2RGB) for i in doc["images"]]
+    for mesh in doc["meshes"]:
+        for p in mesh["primitives"]:
+            if "TEXCOORD_0" not in p["attributes"]:
+                continue
+            source = doc["textures"][doc["materials"][p["material"]]["pbrMetallicRoughness"]["baseColorTexture"]
+                                     ["index"]]["source"]
+            positions = array(p["attributes"]["POSITION"], np.float32, 3).astype(np.float64) @ GLTF_FROM_LOCAL
+            yield (doc["images"][source]["name"], images[source], positions,
+                   array(p["attributes"]["TEXCOORD_0"], np.float32, 2).astype(np.float64),
+                   array(p["indices"], np.uint32, 3))
+
+
+def test_textured_model_shows_what_the_images_show(ortho_run):
+    """buildings_textured.glb, read back from the file: at the centre of every textured
+    triangle, its texture shows what the orthophoto (roofs) or its source image (walls)
+    shows at that triangle's place; with the texture read upside down it would not."""
+    s = ortho_run
+    views = {v.name: v for v in ortho.frame_views(s.scene)}
+    origin = np.asarray(s.city.frame.origin)
+    picked = {"roof": ([], []), "wall": ([], [])}
+    for name, texture, positions, uv, faces in _glb_parts(s.out_dir / "buildings_textured.glb"):
+        world = positions[faces].mean(axis=1) + origin
+        for flip, got in ((False, picked), (True, None)):
+            t = uv[faces].mean(axis=1)
+            if flip:
+                t[:, 1] = 1.0 - t[:, 1]
+            h, w = texture.shape[:2]
+            shown = _grey(texture[np.clip((t[:, 1] * h).astype(int), 0, h - 1),
+                                  np.clip((t[:, 0] * w).astype(int), 0, w - 1)])
+            if name == "ortho":
+                col, row = ~s.ortho.transform @ (world[:, 0], world[:, 1])
+                seen = _grey(np.moveaxis(s.ortho.data, 0, -1)[np.floor(row).astype(int), np.floor(col).astype(int)])
+            else:
+                vc, vr = views[name].project(world[:, 0], world[:, 1], world[:, 2])
+                seen = _grey(views[name].image[np.rint(vr).astype(int), np.rint(vc).astype(int)])
+            key = "roof" if name == "ortho" else "wall"
+            picked[key][int(flip)].append(np.abs(shown - seen))
+    info = s.report["textures"]
+    assert info["wall_surfaces_textured"] >= 0.5 * info["wall_surfaces"], info
+    for key, (right, flipped) in picked.items():
+        right, flipped = np.concatenate(right), np.concatenate(flipped)
+        assert len(right) >= 50, key
+        assert np.median(right) < 12 and np.median(flipped) > 2 * np.median(right), (key, np.median(right),
+                                                                                       np.median(flipped))

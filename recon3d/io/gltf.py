@@ -23,6 +23,13 @@ load each building as one closed, outward-facing shell. glTF specifics handled h
 - **Attributes**: id, status, reason, heights, ``geometry_type`` ("Solid", or
   "MultiSurface" for surfaces read from another tool that close no volume) and
   ``building.attributes`` are in both the node's and the mesh's ``extras``.
+
+:func:`write_textured_glb` writes the same buildings for looking at: roofs and walls
+textured from the stereo images (:mod:`recon3d.stereo.texture`), one primitive per
+texture a building uses, the images embedded as JPEG. A corner shared by a roof and a
+wall has two texture coordinates, so there each primitive keeps its own copy of it:
+the shell is closed by position, not by shared vertices (weld by position, as
+trimesh's ``merge_vertices`` does, to get the solid back).
 """
 
 from __future__ import annotations
@@ -38,18 +45,25 @@ import trimesh
 from recon3d.core.city import CityModel, Solid
 from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
+from recon3d.io.glb import Binary, accessor, glb, index_accessor
 from recon3d.io.cityjson import building_attributes
 from recon3d.io.obj import MATERIALS, highest_lod, surface_order
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GLTF_FROM_LOCAL", "write_glb", "write_gltf"]
+__all__ = ["GLTF_FROM_LOCAL", "JPEG_QUALITY", "write_glb", "write_gltf", "write_textured_glb"]
 
 #: (3, 3) rotation taking local Z-up (x, y, z) to glTF Y-up (x, z, -y): ``p_gltf = R @ p``.
 GLTF_FROM_LOCAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 #: Base colour (RGBA, 0-1) of the one material: the walls' colour.
 _COLOUR = [*MATERIALS["WallSurface"][1], 1.0]
+
+#: JPEG quality of the textures of :func:`write_textured_glb`.
+JPEG_QUALITY = 90
+
+#: glTF sampler: bilinear, mipmapped, clamped (texture coordinates stay within [0, 1]).
+_SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}
 
 
 def write_glb(city: CityModel, path: str | Path) -> None:
@@ -113,7 +127,13 @@ def build_scene(city: CityModel) -> trimesh.Scene:
         mesh.metadata.update(extras, surface_types=ranges)
         name = str(building.id)
         scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
-    scene.metadata["recon3d"] = {
+    scene.metadata.update(build_scene_extras(city))
+    return scene
+
+
+def build_scene_extras(city: CityModel) -> dict:
+    """The scene's ``extras``: ``{"recon3d": {origin, crs, up, units, note}}``, the way back to the CRS."""
+    info = {
         "origin": [float(v) for v in city.frame.origin],
         "crs": crs_name(city.crs),
         "up": "Y",
@@ -121,8 +141,8 @@ def build_scene(city: CityModel) -> trimesh.Scene:
         "note": "world = local(x, -z_gltf, y_gltf) + origin",
     }
     if uncoded_wkt(city.crs):  # a CRS without an EPSG code travels as its WKT
-        scene.metadata["recon3d"]["crs_wkt"] = uncoded_wkt(city.crs)
-    return scene
+        info["crs_wkt"] = uncoded_wkt(city.crs)
+    return {"recon3d": info}
 
 
 def _building_mesh(solid: Solid) -> tuple[trimesh.Trimesh, dict[str, list[int]]]:
@@ -143,3 +163,69 @@ def _building_mesh(solid: Solid) -> tuple[trimesh.Trimesh, dict[str, list[int]]]
     mesh = trimesh.Trimesh(vertices @ GLTF_FROM_LOCAL.T, faces[order], process=False)
     mesh.visual = trimesh.visual.TextureVisuals(material=material)
     return mesh, ranges
+
+
+def write_textured_glb(city: CityModel, model, path: str | Path) -> None:
+    """Write the buildings of ``model`` (:class:`~recon3d.stereo.texture.TexturedModel`)
+    as a textured GLB file (atomic): one node per building, named and with ``extras``
+    as in :func:`write_glb`, one primitive per texture it uses."""
+    import cv2
+
+    binary = Binary()
+    images = []
+    for texture in model.textures:
+        ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(texture.image, cv2.COLOR_RGB2BGR),
+                                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise ValueError(f"{path}: texture {texture.name!r} could not be encoded as JPEG")
+        images.append({"name": texture.name, "bufferView": binary.view(jpeg.tobytes()), "mimeType": "image/jpeg"})
+    materials = [{"name": t.name, "pbrMetallicRoughness": {"baseColorTexture": {"index": i}, "metallicFactor": 0.0,
+                                                           "roughnessFactor": 1.0}}
+                 for i, t in enumerate(model.textures)]
+    plain = len(materials)  # untextured surfaces: the walls' colour, as in write_glb
+    materials.append({"name": "building", "pbrMetallicRoughness": {
+        "baseColorFactor": _COLOUR, "metallicFactor": 0.0, "roughnessFactor": 1.0}})
+    accessors, meshes, nodes = [], [], []
+    for building in city.buildings:
+        parts = model.parts.get(str(building.id))
+        if not parts:
+            continue
+        primitives = []
+        for part in parts:
+            attributes = {"POSITION": len(accessors)}
+            accessors.append(accessor((part.vertices @ GLTF_FROM_LOCAL.T).astype(np.float32), binary, "VEC3",
+                                      bounds=True))
+            if part.texture >= 0:
+                attributes["TEXCOORD_0"] = len(accessors)
+                accessors.append(accessor(part.uv.astype(np.float32), binary, "VEC2"))
+            accessors.append(index_accessor(part.faces, binary))
+            primitives.append({"attributes": attributes, "indices": len(accessors) - 1, "mode": 4,
+                               "material": part.texture if part.texture >= 0 else plain})
+        lod = highest_lod(building)
+        extras = {"id": str(building.id), "lod": lod, "geometry_type": building.solids[lod].kind,
+                  **building_attributes(building)}
+        if building.parent is not None:
+            extras["parent"] = building.parent
+        nodes.append({"name": str(building.id), "mesh": len(meshes), "extras": extras})
+        meshes.append({"name": str(building.id), "primitives": primitives, "extras": extras})
+    scene_extras = build_scene_extras(city)
+    data = binary.padded()
+    doc = {
+        "asset": {"version": "2.0", "generator": "recon3d"},
+        "scene": 0,
+        "scenes": [{"nodes": list(range(len(nodes))), "extras": scene_extras}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "materials": materials,
+        "accessors": accessors,
+        "bufferViews": binary.views,
+        "buffers": [{"byteLength": len(data)}],
+    }
+    if model.textures:
+        doc.update(images=images, samplers=[_SAMPLER],
+                   textures=[{"sampler": 0, "source": i} for i in range(len(images))])
+    if not nodes:
+        log.warning("no building has a solid: %s holds an empty scene", path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(glb(doc, data) if nodes else _empty_glb(scene_extras))
+    log.info("wrote %d textured building nodes (%d textures) to %s", len(nodes), len(model.textures), path)

@@ -40,7 +40,6 @@ import logging
 import math
 import os
 import shutil
-import struct
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +51,7 @@ from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import crs_name, crs_units
 from recon3d.errors import CRSError
 from recon3d.io.cityjson import building_attributes
+from recon3d.io.glb import Binary, accessor, glb
 from recon3d.io.gltf import GLTF_FROM_LOCAL
 from recon3d.io.obj import MATERIALS, highest_lod
 
@@ -66,8 +66,6 @@ MAX_LEVEL = 16
 #: Value of a numeric building property the building does not have.
 NO_DATA = -9999.0
 
-_FLOAT, _UBYTE = 5126, 5121
-_ARRAY_BUFFER = 34962
 
 
 # --------------------------------------------------------------------------- public
@@ -503,45 +501,6 @@ def _column(prop: _Property, items: list[_Item]) -> list[bytes]:
 # --------------------------------------------------------------------------- glTF
 
 
-class _Bin:
-    """The binary chunk of a GLB being assembled, and its buffer views."""
-
-    def __init__(self) -> None:
-        self.data = bytearray()
-        self.views: list[dict] = []
-
-    def view(self, payload: bytes, target: int | None = None) -> int:
-        """Append ``payload`` (8-byte aligned, as property tables want); its view's index.
-
-        An empty payload (the strings of a column of empty strings) takes one byte: a
-        buffer view is never empty.
-        """
-        payload = payload or b"\0"
-        self.data += b"\0" * (-len(self.data) % 8)
-        view = {"buffer": 0, "byteOffset": len(self.data), "byteLength": len(payload)}
-        if target is not None:
-            view["target"] = target
-        self.data += payload
-        self.views.append(view)
-        return len(self.views) - 1
-
-
-def _accessor(data: np.ndarray, binary: _Bin, kind: str, *, bounds: bool = False, normalized: bool = False) -> dict:
-    """An accessor over (n, k) or (n,) float32/uint8 vertex data, added to ``binary``."""
-    accessor = {
-        "bufferView": binary.view(np.ascontiguousarray(data).tobytes(), _ARRAY_BUFFER),
-        "componentType": _UBYTE if data.dtype == np.uint8 else _FLOAT,
-        "count": len(data),
-        "type": kind,
-    }
-    if normalized:
-        accessor["normalized"] = True
-    if bounds:
-        accessor["min"] = [float(v) for v in data.min(axis=0)]
-        accessor["max"] = [float(v) for v in data.max(axis=0)]
-    return accessor
-
-
 def _flat_normals(corners: np.ndarray) -> np.ndarray:
     """(3 m, 3) float32 unit normal of each corner's triangle (z up, (3 m, 3) corners)."""
     tri = corners.reshape(-1, 3, 3)
@@ -577,7 +536,7 @@ def _geometry(items: list[_Item], centre: np.ndarray) -> tuple[np.ndarray, ...]:
     return positions, normals, rgba, feature
 
 
-def _metadata(items: list[_Item], schema: list[_Property], binary: _Bin) -> dict:
+def _metadata(items: list[_Item], schema: list[_Property], binary: Binary) -> dict:
     """The ``EXT_structural_metadata`` object: the class and the tile's property table."""
     columns = {}
     for prop in schema:
@@ -599,12 +558,12 @@ def _content_glb(items: list[_Item], schema: list[_Property], name: str) -> byte
     lo, hi = np.min([i.lo for i in items], axis=0), np.max([i.hi for i in items], axis=0)
     centre = np.round(0.5 * (lo + hi), 3)
     positions, normals, rgba, feature = _geometry(items, centre)
-    binary = _Bin()
+    binary = Binary()
     accessors = [
-        _accessor(positions, binary, "VEC3", bounds=True),
-        _accessor(normals, binary, "VEC3"),
-        _accessor(rgba, binary, "VEC4", normalized=True),
-        _accessor(feature, binary, "SCALAR"),
+        accessor(positions, binary, "VEC3", bounds=True),
+        accessor(normals, binary, "VEC3"),
+        accessor(rgba, binary, "VEC4", normalized=True),
+        accessor(feature, binary, "SCALAR"),
     ]
     metadata = _metadata(items, schema, binary)
     features = {"featureIds": [{"featureCount": len(items), "attribute": 0, "propertyTable": 0}]}
@@ -614,7 +573,7 @@ def _content_glb(items: list[_Item], schema: list[_Property], name: str) -> byte
     }
     node = {"name": f"tile {name}", "mesh": 0, "translation": [float(v) for v in centre @ GLTF_FROM_LOCAL.T],
             "extras": {"buildings": [i.props["id"] for i in items]}}
-    binary.data += b"\0" * (-len(binary.data) % 4)
+    data = binary.padded()
     doc = {
         "asset": {"version": "2.0", "generator": "recon3d"},
         "extensionsUsed": ["EXT_mesh_features", "EXT_structural_metadata"],
@@ -627,18 +586,6 @@ def _content_glb(items: list[_Item], schema: list[_Property], name: str) -> byte
             "baseColorFactor": [1.0, 1.0, 1.0, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
         "accessors": accessors,
         "bufferViews": binary.views,
-        "buffers": [{"byteLength": len(binary.data)}],
+        "buffers": [{"byteLength": len(data)}],
     }
-    return _glb(doc, bytes(binary.data))
-
-
-def _glb(doc: dict, binary: bytes) -> bytes:
-    """A GLB container: 12-byte header, JSON chunk (space padded), BIN chunk (4-byte aligned)."""
-    text = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
-    text += b" " * (-len(text) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
-    return b"".join([
-        struct.pack("<4sII", b"glTF", 2, total),
-        struct.pack("<II", len(text), 0x4E4F534A), text,
-        struct.pack("<II", len(binary), 0x004E4942), binary,
-    ])
+    return glb(doc, data)

@@ -41,6 +41,7 @@ class Products:
     CITY = "buildings.city.json"
     OBJ = "buildings.obj"
     GLB = "buildings.glb"
+    GLB_TEXTURED = "buildings_textured.glb"
     TILES = "buildings_3dtiles"
     FOOTPRINTS = "footprints.geojson"
     FOOTPRINTS_GPKG = "footprints.gpkg"

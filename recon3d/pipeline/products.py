@@ -46,6 +46,10 @@ def write_products(r: Run) -> None:
     write_cityjson(city, w / P.CITY)
     write_obj(city, w / P.OBJ)
     write_glb(city, w / P.GLB)
+    if q.textured is not None:
+        from recon3d.io.gltf import write_textured_glb
+
+        write_textured_glb(city, q.textured, w / P.GLB_TEXTURED)
     write_3dtiles(city, w / P.TILES)
     write_footprints(r, w / P.FOOTPRINTS, w / P.FOOTPRINTS_GPKG)
     if q.changes is not None:

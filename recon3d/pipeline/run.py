@@ -149,6 +149,7 @@ class Quality:
     model_scan: Raster | None = None  # the model scanned at the points, gridded like the DSM
     ortho: Any = None
     ortho_diff: Raster | None = None
+    textured: Any = None  # the model textured from the images (recon3d.stereo.texture)
     changes: Any = None
 
 
@@ -1114,6 +1115,25 @@ def make_orthophotos(r: Run) -> None:
         r.warn(f"the images disagree on the DSM over {area:.0f} {u.name}2 in {len(regions)} areas "
                f"({100 * area / (judged.sum() * dsm.resolution**2):.1f} % of what they both see with texture): "
                "see ortho_diff.tif and the report's list")
+    if cfg.textures:
+        _texture_model(r, views, on_dsm if cfg.surface == "dtm" else None, gsd, tolerance)
+
+
+def _texture_model(r: Run, views: list, looks_on_dsm, gsd: float, tolerance: float) -> None:
+    """The city model with its roofs textured from a true orthophoto (the run's, unless
+    that one is on the DTM, where roofs lean) and its walls from the images."""
+    from recon3d.stereo import ortho, texture
+
+    q = r.quality
+    roofs = q.ortho if looks_on_dsm is None else ortho.true_ortho(r.surface.dsm, views, gsd, tolerance=tolerance,
+                                                                     looks=looks_on_dsm)
+    q.textured = texture.texture_city(r.city, views, roofs)
+    r.report["textures"] = q.textured.info
+    for t in q.textured.textures:
+        if t.reduced > 1:
+            h, w = t.image.shape[:2]
+            r.warn(f"{output.Products.GLB_TEXTURED}: the texture from {t.name} is reduced {t.reduced} x to {w} x {h} px, "
+                   f"the largest every glTF viewer takes ({texture.MAX_TEXTURE_SIZE} px)")
 
 
 def evaluate_products(r: Run) -> None:

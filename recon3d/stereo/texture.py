@@ -1,0 +1,323 @@
+"""Textures of the building models from the stereo images.
+
+Roofs take their colours from the true orthophoto, straight down: a roof corner's
+texture coordinate is its place in ``ortho.tif``. Each wall takes them from the image
+that sees it largest and from the front (the projected area of its front face, in
+pixels): a wall corner's texture coordinate is its projection into that image, so the
+wall shows what the camera saw. Walls no image sees whole, from the front and at
+least :data:`MIN_WALL_VIEW` of their frontal size, stay untextured, unless they are
+low steps between the parts of a roof, which take the orthophoto's colours; ground
+surfaces stay untextured.
+
+The model's triangles are grouped per building by the image they take colours from;
+each group becomes one textured primitive of ``buildings_textured.glb``
+(:func:`recon3d.io.gltf.write_textured_glb`). Because texture coordinates are a
+function of the position within a group, every group is welded; the groups of a
+building meet at eaves and wall edges, where each keeps its own copy of the corner.
+
+Limits, stated so nobody relies on more: walls are not tested for occlusion by other
+buildings or trees (a wall hidden behind a tree in its best image shows the tree);
+each texture is cut to the part the model uses and reduced to :data:`MAX_TEXTURE_SIZE`
+pixels on its long side when larger, which is said in run.json and on the terminal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recon3d.core.city import CityModel
+from recon3d.io.obj import highest_lod
+from recon3d.stereo.ortho import OrthoImage, View
+
+__all__ = ["MAX_TEXTURE_SIZE", "Part", "Texture", "TexturedModel", "texture_city"]
+
+#: Longest side (pixels) of a texture: what every WebGL implementation takes (desktop
+#: and mobile GPUs report MAX_TEXTURE_SIZE >= 4096), so the model opens in any viewer.
+MAX_TEXTURE_SIZE = 4096
+
+#: Least size of a wall in its image, as a share of its size seen from straight in
+#: front at the same distance (the cosine of the angle off its normal: 81 degrees).
+#: Nadir images see most walls more obliquely; their few rows of pixels would be
+#: stretched over the whole wall, smeared with the ground beside it.
+MIN_WALL_VIEW = 0.15
+
+#: Walls up to this high (CRS height units) that no image sees well enough, the steps
+#: between the parts of a roof and parapets, take the orthophoto's colours like the
+#: roof around them, not the plain colour of untextured walls.
+STEP_WALL_HEIGHT = 1.0
+
+#: Pixels kept around the texture coordinates a crop of an image must hold: bilinear
+#: sampling and mipmaps read the neighbours of the last texel.
+CROP_MARGIN = 4
+
+
+@dataclass
+class Texture:
+    """One image of the textured model.
+
+    Attributes
+    ----------
+    name : str
+        "ortho", or the name of the stereo image the walls come from.
+    image : (h, w, 3) uint8
+        RGB (panchromatic images repeated in the three bands).
+    reduced : int
+        Factor the source pixels were reduced by to fit :data:`MAX_TEXTURE_SIZE` (1: none).
+    """
+
+    name: str
+    image: np.ndarray
+    reduced: int = 1
+
+
+@dataclass
+class Part:
+    """The triangles of one building that share a texture: one glTF primitive.
+
+    Attributes
+    ----------
+    texture : int
+        Index into :attr:`TexturedModel.textures`; -1 for untextured triangles.
+    vertices : (n, 3) float64
+        In the city model's local frame.
+    uv : (n, 2) float32
+        Texture coordinates, (0, 0) the top-left corner of the image, (1, 1) the
+        bottom-right; zeros for untextured parts.
+    faces : (m, 3) int64
+        Triangles on ``vertices``, wound outward as the solid's.
+    """
+
+    texture: int
+    vertices: np.ndarray
+    uv: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass
+class TexturedModel:
+    """The city model's highest-LoD solids as textured parts.
+
+    Attributes
+    ----------
+    textures : list of Texture
+    parts : dict of str to list of Part
+        Per building id, its parts (buildings without a solid are left out).
+    info : dict
+        What run.json records: textured roofs and walls, reduced textures.
+    """
+
+    textures: list[Texture]
+    parts: dict[str, list[Part]] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class _Triangles:
+    """Every building's highest-LoD triangles, concatenated."""
+
+    world: np.ndarray  # (n, 3) vertices in the CRS
+    faces: np.ndarray  # (m, 3) into world
+    kind: np.ndarray  # (m,) "RoofSurface", "WallSurface", ...
+    surface: np.ndarray  # (m,) surface id, unique across buildings
+    building: np.ndarray  # (m,) index into ids
+    ids: list[str]
+    local: np.ndarray  # (n, 3) vertices in the local frame
+
+
+def _triangles(city: CityModel) -> _Triangles:
+    origin = np.asarray(city.frame.origin, np.float64)
+    verts, faces, kinds, surfaces, owners, ids = [], [], [], [], [], []
+    n_vert = n_surf = 0
+    for building in city.buildings:
+        lod = highest_lod(building)
+        if lod is None:
+            continue
+        solid = building.solids[lod]
+        v, f, s = solid.mesh()
+        verts.append(v)
+        faces.append(f + n_vert)
+        kinds.append(np.array(solid.semantics, dtype=object)[s] if len(s) else np.zeros(0, object))
+        surfaces.append(s + n_surf)
+        owners.append(np.full(len(f), len(ids)))
+        ids.append(str(building.id))
+        n_vert += len(v)
+        n_surf += len(solid.semantics)
+    if not ids:
+        empty = np.zeros((0, 3))
+        return _Triangles(empty, np.zeros((0, 3), np.int64), np.zeros(0, object), np.zeros(0, np.int64),
+                          np.zeros(0, np.int64), [], empty)
+    local = np.concatenate(verts)
+    return _Triangles(local + origin, np.concatenate(faces).astype(np.int64), np.concatenate(kinds),
+                      np.concatenate(surfaces), np.concatenate(owners), ids, local)
+
+
+def _as_rgb(image: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8 of an (h, w, bands) image: float images (NaN nodata) stretched
+    from their 0.1 to 99.9 percentile, one band repeated three times."""
+    if image.dtype != np.uint8:
+        finite = np.isfinite(image)
+        lo, hi = np.percentile(image[finite], [0.1, 99.9]) if finite.any() else (0.0, 1.0)
+        scaled = (np.nan_to_num(image, nan=lo) - lo) * (255.0 / max(hi - lo, 1e-9))
+        image = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
+    if image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    return np.ascontiguousarray(image[:, :, :3])
+
+
+def _fit(image: np.ndarray, max_size: int) -> tuple[np.ndarray, int]:
+    """The image reduced by the smallest whole factor that fits ``max_size`` (area
+    averaging), and that factor. Texture coordinates are fractions of the image, so
+    they hold for the reduced image as they were."""
+    import cv2
+
+    factor = max(1, math.ceil(max(image.shape[:2]) / max_size))
+    if factor == 1:
+        return image, 1
+    h, w = image.shape[:2]
+    size = (max(1, round(w / factor)), max(1, round(h / factor)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), factor
+
+
+def _signed_area(col: np.ndarray, row: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m,) signed pixel area of each projected triangle."""
+    c, r = col[faces], row[faces]
+    return 0.5 * ((c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0]) - (c[:, 2] - c[:, 0]) * (r[:, 1] - r[:, 0]))
+
+
+def _ground_probe(view: View, centre: np.ndarray) -> tuple[float, float]:
+    """How ``view`` sees a small upward-facing triangle at ``centre`` (every aerial view
+    sees the ground from above): the sign of its projected area, which is that of every
+    face seen from the front, and the image pixels per CRS unit there (0, 0 if it does
+    not land)."""
+    x, y, z = centre
+    col, row = (np.asarray(a, np.float64) for a in
+                view.project(np.array([x, x + 1.0, x]), np.array([y, y, y + 1.0]), np.full(3, z)))
+    area = _signed_area(col, row, np.array([[0, 1, 2]]))[0]
+    scale = 0.5 * (np.hypot(col[1] - col[0], row[1] - row[0]) + np.hypot(col[2] - col[0], row[2] - row[0]))
+    if not (np.isfinite(area) and area != 0 and np.isfinite(scale)):
+        return 0.0, 0.0
+    return float(np.sign(area)), float(scale)
+
+
+def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View]) -> tuple[np.ndarray, list]:
+    """Per wall surface, the view that sees it largest from the front, with all its
+    corners on the image and at least :data:`MIN_WALL_VIEW` of its frontal size (-1:
+    none), and every view's projection of the vertices."""
+    n_surf = int(tri.surface.max()) + 1 if len(tri.surface) else 0
+    best = np.full(n_surf, -1)
+    best_area = np.zeros(n_surf)
+    projections = []
+    centre = np.nanmedian(tri.world, axis=0) if len(tri.world) else np.zeros(3)
+    wall_faces, wall_surface = tri.faces[walls], tri.surface[walls]
+    corners = tri.world[wall_faces]
+    world_area = np.bincount(wall_surface, minlength=n_surf, weights=0.5 * np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1))
+    for k, view in enumerate(views):
+        col, row = (np.asarray(a, np.float64) for a in view.project(tri.world[:, 0], tri.world[:, 1], tri.world[:, 2]))
+        projections.append((col, row))
+        sign, scale = _ground_probe(view, centre)
+        if sign == 0 or not len(wall_faces):
+            continue
+        h, w = view.image.shape[:2]
+        on = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)
+        area = np.bincount(wall_surface, weights=sign * _signed_area(col, row, wall_faces), minlength=n_surf)
+        off = np.bincount(wall_surface, weights=(~on[wall_faces].all(axis=1)).astype(np.float64), minlength=n_surf)
+        frontal = world_area * scale**2
+        better = (off == 0) & (area > best_area) & (area >= MIN_WALL_VIEW * frontal)
+        best[better], best_area[better] = k, area[better]
+    return best, projections
+
+
+def _low_walls(tri: _Triangles) -> np.ndarray:
+    """(m,) bool: triangles of surfaces spanning at most :data:`STEP_WALL_HEIGHT` in height."""
+    z = tri.world[tri.faces, 2]
+    n = int(tri.surface.max()) + 1 if len(tri.surface) else 0
+    top, bottom = np.full(n, -np.inf), np.full(n, np.inf)
+    np.maximum.at(top, tri.surface, z.max(axis=1))
+    np.minimum.at(bottom, tri.surface, z.min(axis=1))
+    return (top - bottom)[tri.surface] <= STEP_WALL_HEIGHT
+
+
+def _crop(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """The part of ``image`` holding the pixel coordinates (plus :data:`CROP_MARGIN`),
+    and its first column and row."""
+    h, w = image.shape[:2]
+    c0 = max(0, int(np.floor(col.min())) - CROP_MARGIN)
+    r0 = max(0, int(np.floor(row.min())) - CROP_MARGIN)
+    c1 = min(w, int(np.ceil(col.max())) + CROP_MARGIN + 1)
+    r1 = min(h, int(np.ceil(row.max())) + CROP_MARGIN + 1)
+    return image[r0:r1, c0:c1], c0, r0
+
+
+def texture_city(
+    city: CityModel, views: list[View], ortho: OrthoImage | None, *, max_size: int = MAX_TEXTURE_SIZE
+) -> TexturedModel:
+    """The city's highest-LoD solids, their roofs textured from ``ortho`` and their walls
+    from ``views`` (see the module's description).
+
+    Parameters
+    ----------
+    city : CityModel
+    views : list of View
+        The stereo images and their projections (world CRS coordinates to pixels).
+    ortho : OrthoImage, optional
+        The true orthophoto; without it roofs are untextured.
+    max_size : int
+        Longest side of a texture, pixels.
+
+    Returns
+    -------
+    TexturedModel
+    """
+    tri = _triangles(city)
+    roofs = tri.kind == "RoofSurface"
+    walls = tri.kind == "WallSurface"
+    best, projections = _best_views(tri, walls, views)
+    # texture of each triangle: 0 the orthophoto, 1 + k view k, -1 none
+    texture = np.full(len(tri.faces), -1, np.int64)
+    textures: list[Texture] = []
+    uvs: dict[int, np.ndarray] = {}  # per texture, (n, 2) coordinates of every vertex
+    wall_view = np.where(walls, best[tri.surface] if len(best) else -1, -1)
+    if ortho is not None and roofs.any():
+        image, reduced = _fit(_as_rgb(np.moveaxis(ortho.data, 0, -1)), max_size)
+        t = ortho.transform
+        rows, cols = ortho.data.shape[1:]
+        uvs[len(textures)] = np.column_stack([(tri.world[:, 0] - t.c) / t.a / cols, (tri.world[:, 1] - t.f) / t.e / rows])
+        texture[roofs | (walls & (wall_view < 0) & _low_walls(tri))] = len(textures)
+        textures.append(Texture("ortho", image, reduced))
+    for k, view in enumerate(views):
+        mine = wall_view == k
+        if not mine.any():
+            continue
+        col, row = projections[k]
+        used = np.unique(tri.faces[mine])
+        crop, c0, r0 = _crop(_as_rgb(view.image), col[used], row[used])
+        image, reduced = _fit(crop, max_size)
+        h, w = crop.shape[:2]
+        # pixel centres are at whole coordinates; texture coordinates run over pixel edges
+        uvs[len(textures)] = np.column_stack([(col - c0 + 0.5) / w, (row - r0 + 0.5) / h])
+        texture[mine] = len(textures)
+        textures.append(Texture(view.name, image, reduced))
+    model = TexturedModel(textures)
+    order = np.lexsort((texture, tri.building))
+    keys = tri.building[order] * (len(textures) + 1) + texture[order] + 1
+    starts = np.r_[0, np.flatnonzero(np.diff(keys)) + 1, len(order)] if len(order) else np.zeros(1, np.int64)
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        group = order[a:b]
+        k = int(texture[group[0]])
+        used, faces = np.unique(tri.faces[group], return_inverse=True)
+        coords = uvs[k][used] if k >= 0 else np.zeros((len(used), 2))
+        part = Part(k, tri.local[used], coords.astype(np.float32), faces.reshape(-1, 3).astype(np.int64))
+        model.parts.setdefault(tri.ids[int(tri.building[group[0]])], []).append(part)
+    n_walls = len(np.unique(tri.surface[walls]))
+    model.info = {
+        "roof_triangles_textured": int(np.count_nonzero(roofs & (texture >= 0))),
+        "wall_surfaces": n_walls,
+        "wall_surfaces_textured": len(np.unique(tri.surface[walls & (texture >= 0)])),
+        "textures": [{"name": t.name, "size": [int(t.image.shape[1]), int(t.image.shape[0])], "reduced": t.reduced}
+                     for t in textures],
+    }
+    return model
