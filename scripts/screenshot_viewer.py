@@ -4,7 +4,7 @@ Software WebGL (SwiftShader), no network: the page and three.js come from the lo
 server. Needs Debian's `chromium` package and the `playwright` Python package (it
 drives /usr/bin/chromium; no browser download).
 
-    .venv/bin/python scripts/screenshot_viewer.py OUT [--png viewer.png] [--mode lod|quality] [--select ID]
+    .venv/bin/python scripts/screenshot_viewer.py OUT [--png viewer.png] [--mode lod|quality|photo] [--select ID]
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out_dir", type=Path, help="a recon3d output folder")
     parser.add_argument("--png", type=Path, default=None, help="screenshot path (default OUT/viewer.png)")
-    parser.add_argument("--mode", choices=["lod", "quality"], default="lod", help="colouring")
+    parser.add_argument("--mode", choices=["lod", "quality", "photo"], default="lod",
+                        help="colouring (photo: the model textured from the images, stereo runs)")
     parser.add_argument("--select", metavar="ID", help="click this building first (default: the first one)")
     parser.add_argument("--size", default="1400x900", help="window size WxH")
     args = parser.parse_args()

@@ -251,3 +251,72 @@ def _share_near(image: np.ndarray, hex_colour: str, tolerance: int = 60) -> floa
     pixels = image.reshape(-1, 3).astype(float)
     brightness = pixels.sum(axis=1, keepdims=True) / max(rgb.sum(), 1)  # lit faces brighter, walls darker
     return float((np.abs(pixels - rgb * brightness).sum(axis=1) < tolerance).mean())
+
+
+@pytest.fixture(scope="module")
+def stereo_view_run(tmp_path_factory):
+    """A rendered frame-stereo scene run end to end: it has buildings_textured.glb."""
+    from recon3d.pipeline.run import run
+    from recon3d.synthetic import write_scene
+
+    folder = tmp_path_factory.mktemp("viewer_stereo") / "scene"
+    write_scene(folder, seed=6, size=100.0, gsd=0.3, image_size=(600, 450))
+    return run(folder, folder.parent / "out")
+
+
+def test_photo_mode_shows_the_textured_model_and_still_picks(stereo_view_run):
+    """A stereo run's page offers the photo mode: the buildings in their LoD colours give
+    way to the textures of buildings_textured.glb, and a click still selects a building."""
+    browser = _chromium()
+    from playwright.sync_api import sync_playwright
+
+    out = stereo_view_run.out_dir
+    files = site_files(out)
+    assert json.loads(files["/run/scene.json"][0])["textured"] is True
+    assert files["/run/buildings_textured.glb"][0] == (out / "buildings_textured.glb").read_bytes()
+    extras = _building_extras(out)
+    server = start_server(out)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with sync_playwright() as p:
+            chromium = p.chromium.launch(executable_path=browser, args=WEBGL_FLAGS)
+            page = chromium.new_page(viewport={"width": 1200, "height": 800})
+            page.goto(server.url)
+            page.wait_for_function("window.recon3dViewer && (window.recon3dViewer.ready || window.recon3dViewer.error)",
+                                   timeout=60_000)
+            assert page.evaluate("window.recon3dViewer.error") is None
+            assert page.is_visible("#by-photo")
+
+            def shot():
+                return cv2.imdecode(np.frombuffer(page.locator("#view").screenshot(), np.uint8),
+                                    cv2.IMREAD_COLOR)[..., ::-1]
+
+            roofs = {i: page.evaluate(f"window.recon3dViewer.project({i!r})") for i in extras}
+            box = page.locator("#view").bounding_box()
+
+            def patch(image, point):  # mean colour of the 5 x 5 pixels at a building's roof point
+                c, r = int(point["x"] - box["x"]), int(point["y"] - box["y"])
+                return image[r - 2:r + 3, c - 2:c + 3].reshape(-1, 3).astype(float).mean(axis=0)
+
+            before = shot()
+            page.click("#by-photo")
+            assert page.evaluate("window.recon3dViewer.mode()") == "photo"
+            after = shot()
+            # every roof point in its LoD colour before, in the colours of its images after
+            changed = [np.abs(patch(after, q) - patch(before, q)).sum() > 40 for q in roofs.values()]
+            assert np.mean(changed) >= 0.8, changed
+            assert page.evaluate("window.recon3dViewer.photo()") == {"shown": True, "buildings": len(extras)}
+            largest = max(extras, key=lambda i: extras[i]["area"])
+            point = page.evaluate(f"window.recon3dViewer.project({largest!r})")
+            page.mouse.click(point["x"], point["y"])
+            assert page.evaluate("window.recon3dViewer.selected()") == largest
+            chromium.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_lidar_run_has_no_photo_mode(delft_run):
+    files = site_files(delft_run.out_dir)
+    assert json.loads(files["/run/scene.json"][0])["textured"] is False
+    assert "/run/buildings_textured.glb" not in files

@@ -1,9 +1,10 @@
 """The files of the run viewer and the localhost HTTP server that serves them.
 
 Everything the page asks for is prepared once, in memory, before the server starts
-(:func:`site_files`): the page itself, ``run/buildings.glb`` as the run wrote it,
-``run/ground.png`` (the texture) and ``run/scene.json`` (frame origin, CRS, where the
-ground lies and its heights, in the local frame of the GLB). Nothing else of the
+(:func:`site_files`): the page itself, ``run/buildings.glb`` as the run wrote it (and
+``run/buildings_textured.glb``, the model textured from the images, when the run has
+one), ``run/ground.png`` (the texture) and ``run/scene.json`` (frame origin, CRS, where
+the ground lies and its heights, in the local frame of the GLB). Nothing else of the
 output folder is reachable.
 
 Local frame, as in :mod:`recon3d.io.gltf`: glTF is Y up, so a world point (x, y, z)
@@ -72,8 +73,11 @@ def site_files(out_dir: str | Path) -> dict[str, tuple[bytes, str]]:
     ground = ground_layer(out_dir, origin)
     if ground is not None:
         files["/run/ground.png"] = (ground.pop("png"), "image/png")
+    textured = out_dir / "buildings_textured.glb"
+    if textured.is_file():
+        files["/run/buildings_textured.glb"] = (textured.read_bytes(), "model/gltf-binary")
     info = {"title": out_dir.resolve().name, "origin": origin.tolist(), "crs": _glb_extras(glb).get("crs"),
-            "ground": ground}
+            "ground": ground, "textured": textured.is_file()}
     files["/run/scene.json"] = (json.dumps(info).encode("utf-8"), "application/json")
     return files
 

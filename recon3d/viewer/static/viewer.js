@@ -1,6 +1,7 @@
 // The recon3d run viewer: buildings.glb (one node per building, its attributes in the
-// node's extras) on the run's ground, coloured by LoD or by quality; a click shows a
-// building's attributes. Everything is in the GLB's local frame (Y up, north is -Z).
+// node's extras) on the run's ground, coloured by LoD or by quality, or shown as the
+// images saw it (buildings_textured.glb, stereo runs); a click shows a building's
+// attributes. Everything is in the GLB's local frame (Y up, north is -Z).
 // Test hook: window.recon3dViewer.
 import {
   Box3, Color, DirectionalLight, DoubleSide, GLTFLoader, HemisphereLight, Mesh, MeshBasicMaterial,
@@ -35,6 +36,15 @@ scene.add(sun);
 let mode = "lod";
 let selected = null;
 const byId = new Map();
+let photo = null; // the textured model, when the run has one
+
+// The buildings textured from the images; hidden until the "photo" mode shows it.
+async function loadPhoto() {
+  const gltf = await new GLTFLoader().loadAsync("run/buildings_textured.glb");
+  gltf.scene.visible = false;
+  scene.add(gltf.scene);
+  return gltf.scene;
+}
 
 async function loadBuildings() {
   const gltf = await new GLTFLoader().loadAsync("run/buildings.glb");
@@ -70,7 +80,7 @@ async function loadGround(ground) {
 }
 
 function colourOf(data) {
-  if (mode === "lod") return LOD_COLOURS[data.lod] ?? NO_VALUE;
+  if (mode === "lod" || mode === "photo") return LOD_COLOURS[data.lod] ?? NO_VALUE;
   if (data.status !== undefined && data.status !== "ok") return NOT_OK;
   if (typeof data.roof_rms_m !== "number") return NO_VALUE;
   const t = Math.min(Math.max(data.roof_rms_m / RMS_RED, 0), 1);
@@ -80,6 +90,7 @@ function colourOf(data) {
 function legendEntries() {
   const all = [...byId.values()].map((m) => m.userData);
   const count = (test) => all.filter(test).length;
+  if (mode === "photo") return [[SELECTED, "selected building"]];
   if (mode === "lod") {
     const lods = [...new Set(all.map((d) => d.lod))].sort();
     return lods.map((lod) => [LOD_COLOURS[lod] ?? NO_VALUE, `LoD ${lod}: ${count((d) => d.lod === lod)}`]);
@@ -89,11 +100,24 @@ function legendEntries() {
     [NO_VALUE, "no roof RMS"]];
 }
 
+// In the photo mode the coloured meshes stay for picking, drawn only for the selected
+// building, as a see-through highlight over its textures.
+function showColoured(id, mesh) {
+  const shown = mode !== "photo" || id === selected;
+  mesh.material.visible = shown;
+  mesh.material.transparent = mode === "photo";
+  mesh.material.opacity = mode === "photo" ? 0.5 : 1;
+  mesh.material.polygonOffset = mode === "photo"; // drawn over the textured faces it lies on
+  mesh.material.polygonOffsetFactor = -1;
+  mesh.material.polygonOffsetUnits = -4;
+  mesh.material.color.set(id === selected ? SELECTED : colourOf(mesh.userData));
+}
+
 function setMode(next) {
   mode = next;
-  $("by-lod").setAttribute("aria-pressed", String(mode === "lod"));
-  $("by-quality").setAttribute("aria-pressed", String(mode === "quality"));
-  for (const [id, mesh] of byId) mesh.material.color.set(id === selected ? SELECTED : colourOf(mesh.userData));
+  for (const name of ["lod", "quality", "photo"]) $(`by-${name}`).setAttribute("aria-pressed", String(mode === name));
+  if (photo) photo.visible = mode === "photo";
+  for (const [id, mesh] of byId) showColoured(id, mesh);
   $("legend").innerHTML = legendEntries().map(([c, text]) => `<div><span style="background:${c}"></span>${text}</div>`).join("");
   render();
 }
@@ -104,12 +128,12 @@ const format = (value) => (typeof value === "number" && !Number.isInteger(value)
 function select(id) {
   const previous = selected;
   selected = id;
-  if (previous) byId.get(previous).material.color.set(colourOf(byId.get(previous).userData));
+  if (previous) showColoured(previous, byId.get(previous));
   if (id === null) {
     $("building").textContent = "Click a building to see its attributes.";
   } else {
     const mesh = byId.get(id);
-    mesh.material.color.set(SELECTED);
+    showColoured(id, mesh);
     const rows = Object.entries(mesh.userData).filter(([key]) => key !== "surface_types" && key !== "name");
     $("building").innerHTML = `<table>${rows.map(([k, v]) => `<tr><td>${escape(k)}</td><td>${escape(format(v))}</td></tr>`).join("")}</table>`;
   }
@@ -199,6 +223,10 @@ async function main() {
   const info = await (await fetch("run/scene.json")).json();
   $("title").textContent = info.title;
   const buildings = await loadBuildings();
+  if (info.textured) {
+    photo = await loadPhoto();
+    $("by-photo").hidden = false;
+  }
   const ground = info.ground ? await loadGround(info.ground) : null;
   resize();
   window.addEventListener("resize", resize);
@@ -206,6 +234,7 @@ async function main() {
   setMode("lod");
   $("by-lod").onclick = () => setMode("lod");
   $("by-quality").onclick = () => setMode("quality");
+  $("by-photo").onclick = () => setMode("photo");
   let down = null;
   canvas.addEventListener("pointerdown", (e) => { down = [e.clientX, e.clientY]; });
   canvas.addEventListener("pointerup", (e) => {
@@ -218,6 +247,7 @@ async function main() {
     setMode,
     colour: (id) => `#${byId.get(id).material.color.getHexString()}`,
     selected: () => selected,
+    photo: () => ({ shown: Boolean(photo?.visible), buildings: photo ? photo.children.length : 0 }),
     project,
     ready: false,
   };
