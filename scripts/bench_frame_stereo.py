@@ -172,7 +172,8 @@ COLUMNS = [
     ("coverage", "cover%"), ("observed", "match%"), ("visible", "vis%"), ("matched_of_visible", "m/vis%"),
     ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
     ("ground_rms", "gndDTM"), ("roof_rms", "roof"), ("footprint_completeness", "compl%"),
-    ("footprint_correctness", "corr%"), ("seconds", "s"),
+    ("footprint_correctness", "corr%"), ("object_completeness", "oComp%"), ("object_correctness", "oCorr%"),
+    ("seconds", "s"),
 ]
 
 

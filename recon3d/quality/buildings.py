@@ -28,6 +28,7 @@ from recon3d.core.pointcloud import ASPRS, PointCloud
 
 __all__ = [
     "ReferenceGrid",
+    "covered_shares",
     "evaluate_against_classes",
     "evaluate_footprints",
     "nearest_point",
@@ -124,7 +125,7 @@ def _object_scores(det: list[shapely.Polygon], ref: list[shapely.Polygon], u: Un
     """The ``object_*``, ``n_*`` and ``outline_*`` scores of :func:`evaluate_footprints` (its defaults)."""
     step = step if step is not None else u.length(0.5)
     max_distance = max_distance if max_distance is not None else u.length(3.0)
-    ref_share, det_share = _covered_shares(ref, det), _covered_shares(det, ref)
+    ref_share, det_share = covered_shares(ref, det), covered_shares(det, ref)
     found = ref_share >= overlap
     correct = det_share >= overlap
     n_found, n_correct = int(found.sum()), int(correct.sum())
@@ -144,7 +145,7 @@ def _object_scores(det: list[shapely.Polygon], ref: list[shapely.Polygon], u: Un
     return out
 
 
-def _covered_shares(polys: list[shapely.Polygon], others: list[shapely.Polygon]) -> np.ndarray:
+def covered_shares(polys: list[shapely.Polygon], others: list[shapely.Polygon]) -> np.ndarray:
     """(n,) share of each polygon's area inside the union of ``others``.
 
     Each polygon meets the union of the few ``others`` it touches, not the union of all:

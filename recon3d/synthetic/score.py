@@ -16,7 +16,10 @@ cells whose top surface at least two images have in frame (``truth/views.tif``).
 - ``ground_rms`` (DTM) and ``roof_rms`` (DSM): the scene's check points inside the
   common area, one per roof part.
 - ``footprint_completeness`` and ``footprint_correctness``: area shares of the truth
-  and the detected footprints, inside the common area.
+  and the detected footprints, inside the common area. ``object_completeness``: share
+  of the truth buildings at least half inside the common area that detections cover by
+  half or more; ``object_correctness``: share of the detections at least half inside
+  it that lie by half or more on truth buildings (the ISPRS rule).
 """
 
 from __future__ import annotations
@@ -184,14 +187,29 @@ def _footprint_scores(city: SyntheticCity, detected: list, grid: Raster, common:
             return np.zeros(grid.shape, bool)
         return rasterize(shapes, out_shape=grid.shape, transform=grid.transform).astype(bool) & common
 
+    from recon3d.quality.buildings import covered_shares
+
     truth = mask([b.footprint for b in city.buildings])
     found = mask(detected)
     both = (truth & found).sum()
+    everything = [b.footprint for b in city.buildings]
+    reference = [p for p in everything if _share_inside(p, grid, common) >= 0.5]
+    detected = [p for p in detected if p is not None and not p.is_empty and _share_inside(p, grid, common) >= 0.5]
+    n_found = int((covered_shares(reference, detected) >= 0.5).sum()) if detected else 0
+    n_correct = int((covered_shares(detected, everything) >= 0.5).sum()) if everything else 0
     return {
         "footprint_completeness": round(100.0 * both / max(1, truth.sum()), 2),
         "footprint_correctness": round(100.0 * both / max(1, found.sum()), 2),
         "truth_buildings": int(sum(1 for b in city.buildings if (mask([b.footprint])).any())),
+        "object_completeness": round(100.0 * n_found / len(reference), 2) if reference else None,
+        "object_correctness": round(100.0 * n_correct / len(detected), 2) if detected else None,
     }
+
+
+def _share_inside(polygon, grid: Raster, common: np.ndarray) -> float:
+    """Share of the cells of ``polygon`` that lie in the common area (0 without cells)."""
+    cells = rasterize([(polygon, 1)], out_shape=grid.shape, transform=grid.transform).astype(bool)
+    return float(common[cells].mean()) if cells.any() else 0.0
 
 
 def _on_grid(source: Raster, grid: Raster) -> np.ndarray:
