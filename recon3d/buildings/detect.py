@@ -57,6 +57,7 @@ __all__ = [
     "fine_surface",
     "label_footprints",
     "refine_labels",
+    "smooth_cells",
     "split_at_steps",
     "split_by_height",
     "step_strength",
@@ -76,10 +77,10 @@ def building_mask(ndsm: Raster, vegetation: np.ndarray, config: BuildingsConfig,
     building needs ``min_height`` somewhere but keeps its low parts. Holes of raised
     cells inside a blob (a tree over the roof, a dark patch) are filled.
     """
-    return _building_mask(ndsm, vegetation, config, units, _smooth_cells(ndsm, config, units))
+    return _building_mask(ndsm, vegetation, config, units, smooth_cells(ndsm, config, units))
 
 
-def _smooth_cells(ndsm: Raster, config: BuildingsConfig, units: Units) -> np.ndarray:
+def smooth_cells(ndsm: Raster, config: BuildingsConfig, units: Units) -> np.ndarray:
     """(rows, cols) bool: cells in at least one planar 3 x 3 window of the nDSM.
 
     Ridges and eaves of narrow gable roofs stay smooth this way; a tree crown is rough
@@ -632,8 +633,8 @@ def find_blobs(
         Points per square metre of the survey; below :data:`PLANAR_DENSITY` the planar
         shares needed fall in proportion.
     """
-    smooth_cells = _smooth_cells(ndsm, config, units)
-    mask = _building_mask(ndsm, vegetation, config, units, smooth_cells)
+    smooth_all = smooth_cells(ndsm, config, units)
+    mask = _building_mask(ndsm, vegetation, config, units, smooth_all)
     res = ndsm.resolution
     min_cells = max(1, int(math.ceil(units.area(config.min_area) / res**2)))
     labels, n = split_by_height(ndsm.data, mask, units.height(config.split_height))
@@ -647,7 +648,7 @@ def find_blobs(
         labels, n = _consecutive(_merge_small(labels, n, min_cells))
     index = np.arange(1, n + 1)
     cells = np.bincount(labels.ravel(), minlength=n + 1)[1:].astype(np.float64)
-    smooth = smooth_cells & mask
+    smooth = smooth_all & mask
     inner = ndimage.grey_erosion(labels, size=3) == labels  # away from walls and the blob's border
     inner &= labels > 0
     inner_cells = np.bincount(labels[inner], minlength=n + 1)[1:].astype(np.float64)

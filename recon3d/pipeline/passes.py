@@ -285,6 +285,9 @@ class Finish:
         The provider-class evaluation grid (with provider classes).
     buffer : int
         Cells of points read around the core for the evaluation grid.
+    crowns : (rows, cols) bool or None
+        The same window of the cells of detected blobs found to be tree crowns: their
+        points above ``vegetation_min_height`` are vegetation.
     """
 
     labels: np.ndarray
@@ -301,6 +304,7 @@ class Finish:
     hidden_ground: bool
     reference_grid: building_quality.ReferenceGrid | None
     buffer: int
+    crowns: np.ndarray | None = None
 
 
 def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
@@ -315,6 +319,10 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     is_ground = load(spec, tile, "ground", "is_ground")["is_ground"]
     decided = load(spec, tile, "vegetation_decide", "vegetation", "roughness")
     veg, rough = decided["vegetation"], decided["roughness"]
+    if f.crowns is not None:
+        row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])
+        height = xyz[:, 2] - f.dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
+        veg = veg | (f.crowns[row, col] & ~is_ground & (np.nan_to_num(height) >= u.height(cfg.vegetation_min_height)))
     roof_surface = None
     if f.roofs is not None:
         row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])

@@ -137,6 +137,7 @@ class Evidence:
     fine: detect.FineSurface
     plane_tolerance: float
     density: float  # first returns per square metre
+    crowns: np.ndarray | None = None  # cells of detected blobs found to be tree crowns after roof modelling
 
 
 @dataclass
@@ -999,6 +1000,8 @@ def build_solids(r: Run) -> None:
         # the share of the footprint's cells without a point, as roofer reports it
         b.attributes.update({"footprint_empty_share": round(float(empty.get(b.id, 0.0)), 3), **fit})
         b.attributes.update(validity_attributes(res.validity))
+    if r.stereo is None and r.source.footprints is None:
+        _drop_crowns(r)
     failed = [b.id for b in city if not b.solids]
     if failed:
         r.notes.append(f"{len(failed)} footprints got no solid: " + ", ".join(failed[:20]))
@@ -1016,6 +1019,36 @@ def build_solids(r: Run) -> None:
             "groups of roof points more than 1 m off, 2 m2 and more: roof_unmodelled_area_m2): "
             + ", ".join(f"{i} {a:.1f} m2" for a, i in missed[:10])
         )
+
+
+def _drop_crowns(r: Run) -> None:
+    """LiDAR without footprints: detected buildings whose roof points fit no plane
+    (reason ``no_roof_planes``) and whose nDSM is smooth on less than ``min_smooth_share``
+    of their cells are tree crowns, not buildings. A sparse survey of a dense canopy
+    (1 point per m2, few multiple returns) gives crowns whose few points look planar to
+    the detection; roof modelling then finds no plane in them. They leave the model and
+    the footprint labels; their cells go to ``r.evidence.crowns``, whose points above
+    the terrain are vegetation in cloud.laz. On the random LiDAR family (180 surveys) no
+    building of the truth ever had ``no_roof_planes``; frame stereo, whose real roofs
+    do, keeps them (its trees are told by colour)."""
+    city, cfg = r.city, r.config.buildings
+    picked = [i for i, b in enumerate(city.buildings)
+              if b.reason == "no_roof_planes" and b.parent is None and b.attributes.get("source") == "detected"]
+    if not picked:
+        return
+    n = len(city.buildings) + 1
+    smooth = detect.smooth_cells(r.terrain.ndsm, cfg, r.units)
+    share = np.bincount(r.labels[smooth], minlength=n) / np.maximum(np.bincount(r.labels.ravel(), minlength=n), 1)
+    drop = np.zeros(n, bool)
+    drop[[i + 1 for i in picked if share[i + 1] < cfg.min_smooth_share]] = True
+    if not drop.any():
+        return
+    r.evidence.crowns = drop[r.labels]
+    ids = [b.id for b, d in zip(city.buildings, drop[1:], strict=True) if d]
+    city.buildings = [b for b, d in zip(city.buildings, drop[1:], strict=True) if not d]
+    r.labels = np.where(drop, 0, np.cumsum(~drop) - 1).astype(r.labels.dtype)[r.labels]
+    r.notes.append(f"{len(ids)} detected blobs are tree crowns, not buildings: no roof plane fits their points and "
+                   f"their surface is rough (their points are vegetation): {', '.join(ids[:20])}")
 
 
 def _building_points(r: Run, boxes: np.ndarray) -> list[np.ndarray]:
@@ -1273,7 +1306,7 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         model=touching(r.city), roofs_top=roofs_top, model_top=model_top,
         tolerance=max(u.height(0.25), 2.0 * plane), plane_tolerance=plane,
         hidden_ground=bool(r.auto.get("dsm.hidden_ground", {}).get("value")), reference_grid=reference_grid,
-        buffer=g.buffers["reference"],
+        buffer=g.buffers["reference"], crowns=None if r.evidence.crowns is None else r.evidence.crowns[rows, cols],
     )
 
 
