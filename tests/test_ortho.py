@@ -207,3 +207,30 @@ def test_textured_model_shows_what_the_images_show(ortho_run):
         assert len(right) >= 50, key
         assert np.median(right) < 12 and np.median(flipped) > 2 * np.median(right), (key, np.median(right),
                                                                                        np.median(flipped))
+
+
+def _roofs_cut(source: np.ndarray, labels: np.ndarray, k: int) -> tuple[int, int]:
+    """Roofs (footprints of 20 ortho cells and more) whose seen cells come from two views
+    or more, each with over 5 % of them; and the roofs counted."""
+    roofs = np.repeat(np.repeat(labels, k, axis=0), k, axis=1)
+    cut = counted = 0
+    for i in range(1, int(labels.max()) + 1):
+        src = source[(roofs == i) & (source >= 0)]
+        if len(src) < 20:
+            continue
+        counted += 1
+        shares = np.sort(np.bincount(src)) / len(src)
+        cut += int(len(shares) > 1 and shares[-2] > 0.05)
+    return cut, counted
+
+
+def test_seamlines_run_around_the_buildings(ortho_run):
+    """Each raised object takes its colours from one image: no roof of the orthophoto is
+    cut by a seamline, where the nadir-most choice per cell cuts many."""
+    s = ortho_run
+    k = int(round(s.dsm.resolution / s.ortho.transform.a))
+    cut, counted = _roofs_cut(s.ortho.source, s.labels, k)
+    assert counted >= 8 and cut == 0, (cut, counted)
+    views = ortho.frame_views(s.scene)
+    plain = ortho.true_ortho(s.dsm, views, ortho.image_gsd(views, s.dsm), tolerance=0.5)
+    assert _roofs_cut(plain.source, s.labels, k)[0] >= 0.25 * counted  # measured 6 of 9

@@ -1148,7 +1148,9 @@ def make_orthophotos(r: Run) -> None:
     surface = {"dsm": dsm, "dtm": r.terrain.dtm, "model": q.model_dsm}[cfg.surface]
     tolerance = u.height(ORTHO_TOLERANCE)
     on_dsm = ortho.looks_on(dsm, views, gsd, tolerance=tolerance)
-    q.ortho = ortho.true_ortho(surface, views, gsd, tolerance=tolerance, looks=on_dsm if cfg.surface == "dsm" else None)
+    objects = ortho.raised_objects(r.terrain.ndsm, u.height(r.config.buildings.min_height))
+    q.ortho = ortho.true_ortho(surface, views, gsd, tolerance=tolerance, looks=on_dsm if cfg.surface == "dsm" else None,
+                               objects=objects)
     q.ortho_diff = ortho.ortho_difference(dsm, views, pairs, gsd, tolerance=tolerance, looks=on_dsm)
     ids = [b.id for b in r.city]
     regions = ortho.doubtful_regions(q.ortho_diff, cfg.doubtful_threshold, u.area(cfg.doubtful_area), r.labels, ids)
@@ -1179,8 +1181,9 @@ def _texture_model(r: Run, views: list, looks_on_dsm, gsd: float, tolerance: flo
     from recon3d.stereo import ortho, texture
 
     q = r.quality
-    roofs = q.ortho if looks_on_dsm is None else ortho.true_ortho(r.surface.dsm, views, gsd, tolerance=tolerance,
-                                                                     looks=looks_on_dsm)
+    roofs = q.ortho if looks_on_dsm is None else ortho.true_ortho(
+        r.surface.dsm, views, gsd, tolerance=tolerance, looks=looks_on_dsm,
+        objects=ortho.raised_objects(r.terrain.ndsm, r.units.height(r.config.buildings.min_height)))
     q.textured = texture.texture_city(r.city, views, roofs)
     r.report["textures"] = q.textured.info
     for t in q.textured.textures:

@@ -252,8 +252,15 @@ def looks_on(surface: Raster, views: list[View], gsd: float, *, tolerance: float
     return grid, k, [_look(v, x, y, z, tolerance) for v in views]
 
 
-def true_ortho(surface: Raster, views: list[View], gsd: float, *, tolerance: float, looks=None) -> OrthoImage:
+def true_ortho(surface: Raster, views: list[View], gsd: float, *, tolerance: float, looks=None,
+               objects: np.ndarray | None = None) -> OrthoImage:
     """True orthophoto of ``views`` on ``surface`` at about ``gsd``.
+
+    Each cell comes from the most nadir view that sees it, smoothed by a majority vote
+    over :data:`SOURCE_WINDOW` cells. With ``objects`` (raised objects: buildings,
+    trees) each object takes one view wherever that view sees it, the one seeing most
+    of it (the most nadir on a tie), so that seamlines between images run on low ground
+    and never through a roof, where the images' relief displacement differs most.
 
     Parameters
     ----------
@@ -266,6 +273,8 @@ def true_ortho(surface: Raster, views: list[View], gsd: float, *, tolerance: flo
         Height below the highest surface on the same ray still counted as seen (CRS units).
     looks : tuple, optional
         :func:`looks_on` of the same arguments, when already computed.
+    objects : (rows, cols) int, optional
+        Object labels on the surface's grid (0: none), e.g. :func:`raised_objects`.
 
     Returns
     -------
@@ -274,14 +283,16 @@ def true_ortho(surface: Raster, views: list[View], gsd: float, *, tolerance: flo
     """
     from scipy import ndimage
 
-    grid, _, looks = looks or looks_on(surface, views, gsd, tolerance=tolerance)
+    grid, k, looks = looks or looks_on(surface, views, gsd, tolerance=tolerance)
     lean = np.stack([np.where(vis, ln, np.inf) for _, _, vis, ln in looks])  # (views, rows, cols)
     best = np.argmin(lean, axis=0)
     seen = np.isfinite(lean).any(axis=0)
-    votes = np.stack([ndimage.uniform_filter((best == k) & seen, SOURCE_WINDOW, mode="nearest")
-                      for k in range(len(views))])
+    votes = np.stack([ndimage.uniform_filter((best == v) & seen, SOURCE_WINDOW, mode="nearest")
+                      for v in range(len(views))])
     votes[~np.isfinite(lean)] = -1.0  # a view that does not see the cell cannot win it
     source = np.where(seen, np.argmax(votes, axis=0), -1).astype(np.int16)
+    if objects is not None and objects.any():
+        source = _one_view_per_object(source, lean, np.repeat(np.repeat(objects, k, axis=0), k, axis=1))
     bands = views[0].image.shape[2]
     dtype = views[0].image.dtype
     data = np.zeros((*grid.shape, bands), dtype) if dtype == np.uint8 else np.full((*grid.shape, bands), np.nan, dtype)
@@ -290,6 +301,49 @@ def true_ortho(surface: Raster, views: list[View], gsd: float, *, tolerance: flo
         if mine.any():
             data[mine] = _sample(view, col, row)[mine]
     return OrthoImage(np.moveaxis(data, -1, 0), seen, source, grid.transform)
+
+
+def _one_view_per_object(source: np.ndarray, lean: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """``source`` with each object's cells taken from the view that sees most of it
+    (the lowest mean lean on a tie) wherever that view sees them.
+
+    Parameters
+    ----------
+    source : (rows, cols) int16
+    lean : (views, rows, cols) float
+        inf where the view does not see the cell.
+    objects : (rows, cols) int
+    """
+    n = int(objects.max()) + 1
+    inside = objects > 0
+    label = objects[inside]
+    sees = np.isfinite(lean[:, inside])  # (views, cells)
+    count = np.stack([np.bincount(label, weights=s, minlength=n) for s in sees])
+    mean_lean = np.stack([np.bincount(label, weights=np.where(s, ln, 0.0), minlength=n)
+                          for s, ln in zip(sees, lean[:, inside], strict=True)]) / np.maximum(count, 1)
+    # most cells seen first, then the smaller lean: one sortable key per (view, object)
+    key = count - mean_lean / (1.0 + mean_lean.max(initial=0.0))
+    chosen = np.argmax(key, axis=0)  # (objects,)
+    view = chosen[label]
+    out = source.copy()
+    mine = sees[view, np.arange(len(label))]
+    flat = out[inside]
+    flat[mine] = view[mine]
+    out[inside] = flat
+    return out
+
+
+def raised_objects(ndsm: Raster, min_height: float, margin: int = 2) -> np.ndarray:
+    """(rows, cols) int32 labels of the connected raised objects of an nDSM (above
+    ``min_height``), each grown by ``margin`` cells to take in its walls and eaves."""
+    from scipy import ndimage
+
+    raised = np.nan_to_num(ndsm.data, nan=0.0) >= min_height
+    labels, _ = ndimage.label(raised)
+    if margin > 0 and labels.any():
+        grown = ndimage.grey_dilation(labels, size=2 * margin + 1)
+        labels = np.where(labels > 0, labels, grown)
+    return labels.astype(np.int32)
 
 
 # --------------------------------------------------------------------------- difference map
