@@ -166,6 +166,16 @@ def test_stereo_sections_round_their_figures():
         assert shown in html, shown
 
 
+def test_textured_model_paragraph():
+    textures = {"roof_triangles_textured": 1233, "wall_surfaces": 735, "wall_surfaces_textured": 583,
+                "wall_surfaces_from_ortho": 282, "textures": [{"name": "ortho", "size": [968, 764], "reduced": 1},
+                                                              {"name": "left.png", "size": [3000, 4096], "reduced": 3}]}
+    html = report_html._textures_html(textures)
+    for shown in ("301 of 735 walls", "282 low steps", "ortho (968 x 764 px)", "left.png (3000 x 4096 px, reduced 3 x)"):
+        assert shown in html, shown
+    assert report_html._textures_html(None) == ""
+
+
 def test_report_command_regenerates(delft_run, tmp_path):
     before = (delft_run.out_dir / "report.html").read_bytes()
     result = CliRunner().invoke(cli, ["report", str(delft_run.out_dir)])

@@ -122,6 +122,7 @@ def test_each_wall_takes_the_image_that_sees_it_and_points_at_it(city):
     got = decode(model.textures[0].image, roof.uv, (300, 200))
     assert np.abs(got - expected).max() <= 1.5
     assert model.info["wall_surfaces"] == 4 and model.info["wall_surfaces_textured"] == 3
+    assert model.info["wall_surfaces_from_ortho"] == 0  # 9 m walls are no steps
 
 
 def test_textures_over_the_limit_are_reduced_and_still_point_right(city):
@@ -148,7 +149,7 @@ def test_a_wall_seen_nearly_edge_on_stays_plain(city):
     # walls of at most 1 m (steps between roof parts, parapets) take the orthophoto instead
     low = Building("b2", BOX, GROUND, GROUND + 0.8, solids={"1": lod1_solid(BOX, GROUND, GROUND + 0.8, city.frame)})
     model = texture_city(CityModel([low], city.crs, city.frame), [above], ortho_ramp())
-    assert model.info["wall_surfaces_textured"] == 4
+    assert model.info["wall_surfaces_textured"] == model.info["wall_surfaces_from_ortho"] == 4
     (ortho_part,) = [p for p in model.parts["b2"] if p.texture == 0]
     assert len(ortho_part.faces) == 2 + 4 * 2  # the roof's two triangles and the four walls'
 

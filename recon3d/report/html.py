@@ -97,7 +97,7 @@ def write_report(out_dir: str | Path) -> Path:
     # GIL) are drawn side by side: most of the report's time on a large area
     with ThreadPoolExecutor(FIGURE_THREADS) as pool:
         surfaces = [pool.submit(_surface_figure, out_dir, run, *spec) for spec in SURFACES]
-        ortho = pool.submit(_ortho_section, out_dir, run, report.get("ortho"))
+        ortho = pool.submit(_ortho_section, out_dir, run, report.get("ortho"), report.get("textures"))
         buildings_map = pool.submit(_buildings_section, out_dir, run, report, buildings)
     sections = [
         ("warnings", "Warnings and notes", _warnings_section(run, report)),
@@ -480,8 +480,9 @@ def _surface_figure(out_dir: Path, run: dict, name: str, title: str, cmap: str, 
             + _raster_figure(path, run, title, cmap, caption + note, from_zero=cmap == "height"))
 
 
-def _ortho_section(out_dir: Path, run: dict, o: dict | None) -> str:
-    """Stereo runs: the true orthophoto, the image-difference map and its doubtful areas."""
+def _ortho_section(out_dir: Path, run: dict, o: dict | None, textures: dict | None = None) -> str:
+    """Stereo runs: the true orthophoto, the image-difference map and its doubtful areas,
+    and what buildings_textured.glb took from the images."""
     import cv2
     import rasterio
 
@@ -527,7 +528,19 @@ def _ortho_section(out_dir: Path, run: dict, o: dict | None) -> str:
     rows = [_doubtful_row(r) for r in o.get("regions", [])[:20]]
     table = (_table(["area", "centre (x, y)", "mean 1 - NCC", "buildings touched"], rows, left={1, 3})
              if rows else "<p class=small>No doubtful area.</p>")
-    return "".join(figures) + "<h3>Doubtful areas</h3>" + table
+    return "".join(figures) + "<h3>Doubtful areas</h3>" + table + _textures_html(textures)
+
+
+def _textures_html(t: dict | None) -> str:
+    """One paragraph on the textured model: which images, how many walls."""
+    if not t:
+        return ""
+    images = ", ".join(f"{html.escape(x['name'])} ({x['size'][0]} x {x['size'][1]} px"
+                       + (f", reduced {x['reduced']} x" if x["reduced"] > 1 else "") + ")" for x in t["textures"])
+    return (f"<h3>Textured model</h3><p class=small>buildings_textured.glb: roofs from the orthophoto, "
+            f"{t['wall_surfaces_textured'] - t['wall_surfaces_from_ortho']} of {t['wall_surfaces']} walls from the "
+            f"image that sees each best, {t['wall_surfaces_from_ortho']} low steps between roof parts from the "
+            f"orthophoto, the others plain. Textures: {images or 'none'}.</p>")
 
 
 def _doubtful_row(region: dict) -> str:

@@ -281,12 +281,14 @@ def texture_city(
     textures: list[Texture] = []
     uvs: dict[int, np.ndarray] = {}  # per texture, (n, 2) coordinates of every vertex
     wall_view = np.where(walls, best[tri.surface] if len(best) else -1, -1)
+    from_ortho = -2  # the orthophoto's texture index, once it has one
     if ortho is not None and roofs.any():
         image, reduced = _fit(_as_rgb(np.moveaxis(ortho.data, 0, -1)), max_size)
         t = ortho.transform
         rows, cols = ortho.data.shape[1:]
         uvs[len(textures)] = np.column_stack([(tri.world[:, 0] - t.c) / t.a / cols, (tri.world[:, 1] - t.f) / t.e / rows])
-        texture[roofs | (walls & (wall_view < 0) & _low_walls(tri))] = len(textures)
+        from_ortho = len(textures)
+        texture[roofs | (walls & (wall_view < 0) & _low_walls(tri))] = from_ortho
         textures.append(Texture("ortho", image, reduced))
     for k, view in enumerate(views):
         mine = wall_view == k
@@ -317,6 +319,7 @@ def texture_city(
         "roof_triangles_textured": int(np.count_nonzero(roofs & (texture >= 0))),
         "wall_surfaces": n_walls,
         "wall_surfaces_textured": len(np.unique(tri.surface[walls & (texture >= 0)])),
+        "wall_surfaces_from_ortho": len(np.unique(tri.surface[walls & (texture == from_ortho)])),
         "textures": [{"name": t.name, "size": [int(t.image.shape[1]), int(t.image.shape[0])], "reduced": t.reduced}
                      for t in textures],
     }
