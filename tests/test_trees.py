@@ -85,6 +85,25 @@ def test_sparse_crowns_with_no_roof_plane_are_trees(tmp_path):
     assert row["completeness"] >= 98.0  # measured 98.6 % (the crowns cost nothing)
 
 
+def test_buildings_that_contradict_the_input_classes_are_a_warning(tmp_path, monkeypatch):
+    """The self-check against the provider's classes: with the crowns of seed 154 kept
+    as buildings (the rule above switched off), 34.5 % of its vegetation points are
+    building in cloud.laz, and the run says so on the terminal and in the report."""
+    from recon3d.pipeline import run as pipeline
+
+    monkeypatch.setattr(pipeline, "_drop_crowns", lambda r: None)
+    spec = random_survey(154)
+    spec["file"].update(classes=True, with_crs=True)
+    from recon3d.synthetic.lidar import write_survey
+
+    path, _ = write_survey(tmp_path / "in", spec)
+    state = pipeline.run(path, tmp_path / "out")
+    share = state.report["buildings_vs_provider_area"]["vegetation_as_building_percent"]
+    assert share > 30.0
+    assert any("input's own classes call vegetation" in w for w in state.warnings), state.warnings
+    assert any("input's own classes call vegetation" in w for w in state.report["warnings"])
+
+
 def test_groves_in_the_family():
     """Two surveys in five with trees get groves: closed canopies of 75 m2 and more."""
     seeds = [s for s in range(40, 80) if random_survey(s)["city"].get("groves")]
