@@ -252,6 +252,22 @@ def _crop(image: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarr
     return image[r0:r1, c0:c1], c0, r0
 
 
+def _parts(tri: _Triangles, texture: np.ndarray, uvs: dict[int, np.ndarray], n_textures: int) -> dict[str, list[Part]]:
+    """Each building's triangles grouped by texture, each group on its own vertices."""
+    parts: dict[str, list[Part]] = {}
+    order = np.lexsort((texture, tri.building))
+    keys = tri.building[order] * (n_textures + 1) + texture[order] + 1
+    starts = np.r_[0, np.flatnonzero(np.diff(keys)) + 1, len(order)] if len(order) else np.zeros(1, np.int64)
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        group = order[a:b]
+        k = int(texture[group[0]])
+        used, faces = np.unique(tri.faces[group], return_inverse=True)
+        coords = uvs[k][used] if k >= 0 else np.zeros((len(used), 2))
+        part = Part(k, tri.local[used], coords.astype(np.float32), faces.reshape(-1, 3).astype(np.int64))
+        parts.setdefault(tri.ids[int(tri.building[group[0]])], []).append(part)
+    return parts
+
+
 def texture_city(
     city: CityModel, views: list[View], ortho: OrthoImage | None, *, max_size: int = MAX_TEXTURE_SIZE
 ) -> TexturedModel:
@@ -276,8 +292,7 @@ def texture_city(
     roofs = tri.kind == "RoofSurface"
     walls = tri.kind == "WallSurface"
     best, projections = _best_views(tri, walls, views)
-    # texture of each triangle: 0 the orthophoto, 1 + k view k, -1 none
-    texture = np.full(len(tri.faces), -1, np.int64)
+    texture = np.full(len(tri.faces), -1, np.int64)  # of each triangle: an index into textures, -1 none
     textures: list[Texture] = []
     uvs: dict[int, np.ndarray] = {}  # per texture, (n, 2) coordinates of every vertex
     wall_view = np.where(walls, best[tri.surface] if len(best) else -1, -1)
@@ -303,21 +318,10 @@ def texture_city(
         uvs[len(textures)] = np.column_stack([(col - c0 + 0.5) / w, (row - r0 + 0.5) / h])
         texture[mine] = len(textures)
         textures.append(Texture(view.name, image, reduced))
-    model = TexturedModel(textures)
-    order = np.lexsort((texture, tri.building))
-    keys = tri.building[order] * (len(textures) + 1) + texture[order] + 1
-    starts = np.r_[0, np.flatnonzero(np.diff(keys)) + 1, len(order)] if len(order) else np.zeros(1, np.int64)
-    for a, b in zip(starts[:-1], starts[1:], strict=True):
-        group = order[a:b]
-        k = int(texture[group[0]])
-        used, faces = np.unique(tri.faces[group], return_inverse=True)
-        coords = uvs[k][used] if k >= 0 else np.zeros((len(used), 2))
-        part = Part(k, tri.local[used], coords.astype(np.float32), faces.reshape(-1, 3).astype(np.int64))
-        model.parts.setdefault(tri.ids[int(tri.building[group[0]])], []).append(part)
-    n_walls = len(np.unique(tri.surface[walls]))
+    model = TexturedModel(textures, _parts(tri, texture, uvs, len(textures)))
     model.info = {
         "roof_triangles_textured": int(np.count_nonzero(roofs & (texture >= 0))),
-        "wall_surfaces": n_walls,
+        "wall_surfaces": len(np.unique(tri.surface[walls])),
         "wall_surfaces_textured": len(np.unique(tri.surface[walls & (texture >= 0)])),
         "wall_surfaces_from_ortho": len(np.unique(tri.surface[walls & (texture == from_ortho)])),
         "textures": [{"name": t.name, "size": [int(t.image.shape[1]), int(t.image.shape[0])], "reduced": t.reduced}
