@@ -119,11 +119,8 @@ def build_scene(city: CityModel) -> trimesh.Scene:
         lod = highest_lod(building)
         if lod is None:
             continue
-        solid = building.solids[lod]
-        mesh, ranges = _building_mesh(solid)
-        extras = {"id": str(building.id), "lod": lod, "geometry_type": solid.kind, **building_attributes(building)}
-        if building.parent is not None:
-            extras["parent"] = building.parent  # the block this part belongs to
+        mesh, ranges = _building_mesh(building.solids[lod])
+        extras = _building_extras(building, lod)
         mesh.metadata.update(extras, surface_types=ranges)
         name = str(building.id)
         scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
@@ -169,63 +166,69 @@ def write_textured_glb(city: CityModel, model, path: str | Path) -> None:
     """Write the buildings of ``model`` (:class:`~recon3d.stereo.texture.TexturedModel`)
     as a textured GLB file (atomic): one node per building, named and with ``extras``
     as in :func:`write_glb`, one primitive per texture it uses."""
-    import cv2
-
     binary = Binary()
-    images = []
-    for texture in model.textures:
-        ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(texture.image, cv2.COLOR_RGB2BGR),
-                                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-        if not ok:
-            raise ValueError(f"{path}: texture {texture.name!r} could not be encoded as JPEG")
-        images.append({"name": texture.name, "bufferView": binary.view(jpeg.tobytes()), "mimeType": "image/jpeg"})
-    materials = [{"name": t.name, "pbrMetallicRoughness": {"baseColorTexture": {"index": i}, "metallicFactor": 0.0,
-                                                           "roughnessFactor": 1.0}}
-                 for i, t in enumerate(model.textures)]
-    plain = len(materials)  # untextured surfaces: the walls' colour, as in write_glb
-    materials.append({"name": "building", "pbrMetallicRoughness": {
-        "baseColorFactor": _COLOUR, "metallicFactor": 0.0, "roughnessFactor": 1.0}})
-    accessors, meshes, nodes = [], [], []
+    images, materials = _textured_materials(model.textures, binary, path)
+    plain = len(materials) - 1  # untextured surfaces: the walls' colour, as in write_glb
+    accessors, meshes = [], []
     for building in city.buildings:
         parts = model.parts.get(str(building.id))
-        if not parts:
-            continue
-        primitives = []
-        for part in parts:
-            attributes = {"POSITION": len(accessors)}
-            accessors.append(accessor((part.vertices @ GLTF_FROM_LOCAL.T).astype(np.float32), binary, "VEC3",
-                                      bounds=True))
-            if part.texture >= 0:
-                attributes["TEXCOORD_0"] = len(accessors)
-                accessors.append(accessor(part.uv.astype(np.float32), binary, "VEC2"))
-            accessors.append(index_accessor(part.faces, binary))
-            primitives.append({"attributes": attributes, "indices": len(accessors) - 1, "mode": 4,
-                               "material": part.texture if part.texture >= 0 else plain})
-        lod = highest_lod(building)
-        extras = {"id": str(building.id), "lod": lod, "geometry_type": building.solids[lod].kind,
-                  **building_attributes(building)}
-        if building.parent is not None:
-            extras["parent"] = building.parent
-        nodes.append({"name": str(building.id), "mesh": len(meshes), "extras": extras})
-        meshes.append({"name": str(building.id), "primitives": primitives, "extras": extras})
+        if parts:
+            primitives = [_primitive(part, binary, accessors, plain) for part in parts]
+            meshes.append({"name": str(building.id), "primitives": primitives,
+                           "extras": _building_extras(building, highest_lod(building))})
+    nodes = [{"name": m["name"], "mesh": i, "extras": m["extras"]} for i, m in enumerate(meshes)]
     scene_extras = build_scene_extras(city)
     data = binary.padded()
     doc = {
         "asset": {"version": "2.0", "generator": "recon3d"},
         "scene": 0,
         "scenes": [{"nodes": list(range(len(nodes))), "extras": scene_extras}],
-        "nodes": nodes,
-        "meshes": meshes,
-        "materials": materials,
-        "accessors": accessors,
-        "bufferViews": binary.views,
-        "buffers": [{"byteLength": len(data)}],
+        "nodes": nodes, "meshes": meshes, "materials": materials, "accessors": accessors,
+        "bufferViews": binary.views, "buffers": [{"byteLength": len(data)}],
     }
-    if model.textures:
-        doc.update(images=images, samplers=[_SAMPLER],
-                   textures=[{"sampler": 0, "source": i} for i in range(len(images))])
+    if images:
+        doc.update(images=images, samplers=[_SAMPLER], textures=[{"sampler": 0, "source": i} for i in range(len(images))])
     if not nodes:
         log.warning("no building has a solid: %s holds an empty scene", path)
     with atomic_path(path) as tmp:
         tmp.write_bytes(glb(doc, data) if nodes else _empty_glb(scene_extras))
-    log.info("wrote %d textured building nodes (%d textures) to %s", len(nodes), len(model.textures), path)
+    log.info("wrote %d textured building nodes (%d textures) to %s", len(nodes), len(images), path)
+
+
+def _building_extras(building, lod: str) -> dict:
+    """A building's node and mesh ``extras``: id, LoD, geometry type, attributes and block."""
+    extras = {"id": str(building.id), "lod": lod, "geometry_type": building.solids[lod].kind,
+              **building_attributes(building)}
+    if building.parent is not None:
+        extras["parent"] = building.parent  # the block this part belongs to
+    return extras
+
+
+def _textured_materials(textures: list, binary: Binary, path) -> tuple[list[dict], list[dict]]:
+    """The images (JPEG in ``binary``) and one material per texture, then the plain one."""
+    import cv2
+
+    images = []
+    for texture in textures:
+        ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(texture.image, cv2.COLOR_RGB2BGR),
+                                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise ValueError(f"{path}: texture {texture.name!r} could not be encoded as JPEG")
+        images.append({"name": texture.name, "bufferView": binary.view(jpeg.tobytes()), "mimeType": "image/jpeg"})
+    matte = {"metallicFactor": 0.0, "roughnessFactor": 1.0}
+    materials = [{"name": t.name, "pbrMetallicRoughness": {"baseColorTexture": {"index": i}, **matte}}
+                 for i, t in enumerate(textures)]
+    materials.append({"name": "building", "pbrMetallicRoughness": {"baseColorFactor": _COLOUR, **matte}})
+    return images, materials
+
+
+def _primitive(part, binary: Binary, accessors: list[dict], plain: int) -> dict:
+    """The glTF primitive of one :class:`~recon3d.stereo.texture.Part`, its accessors appended."""
+    attributes = {"POSITION": len(accessors)}
+    accessors.append(accessor((part.vertices @ GLTF_FROM_LOCAL.T).astype(np.float32), binary, "VEC3", bounds=True))
+    if part.texture >= 0:
+        attributes["TEXCOORD_0"] = len(accessors)
+        accessors.append(accessor(part.uv.astype(np.float32), binary, "VEC2"))
+    accessors.append(index_accessor(part.faces, binary))
+    return {"attributes": attributes, "indices": len(accessors) - 1, "mode": 4,
+            "material": part.texture if part.texture >= 0 else plain}
