@@ -18,6 +18,10 @@ recon3d's own estimate of matched of visible (run.json ``stereo.common_area``).
 spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
 matching), to measure their gain; the footprints then also give the building outlines.
 ``--quick``: ``nadir_pair`` alone at 320 px wide.
+
+When bulldozer-dtm (CNES, ``pip install -e ".[bench]"``) is installed, it also turns
+recon3d's own DSM into a DTM, the DSM-to-DTM peer a user of a stereo DSM would run: its
+ground check points are printed beside recon3d's DTM (column ``gndDTM``).
 """
 
 from __future__ import annotations
@@ -144,6 +148,10 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
         score["pairs"] = [{k: p.get(k) for k in ("pair", "matched_percent", "self_check")} for p in state.auto["stereo"]["pairs"]]
         row[name] = score
         cell = state.dsm.resolution
+        if name == "recon3d":
+            peer = bulldozer_dtm(state.out_dir / "dsm.tif", tmp / f"bulldozer-{spec.name}", truth)
+            if peer is not None:
+                row["bulldozer"] = peer
     try:
         dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
     except cv2.error as exc:  # e.g. SGBM refuses a disparity range wider than the rectified image
@@ -154,6 +162,25 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
     score["seconds"] = round(seconds, 2)
     row["opencv"] = score
     return row
+
+
+def bulldozer_dtm(dsm_path: Path, out: Path, truth: Path) -> dict | None:
+    """bulldozer-dtm's DTM of ``dsm_path`` (its defaults, 2 workers) scored on the ground
+    check points; None when bulldozer is not installed."""
+    import contextlib
+    import io
+
+    try:
+        from bulldozer.pipeline.bulldozer_pipeline import dsm_to_dtm
+    except ImportError:
+        return None
+    from recon3d.io.geotiff import read_raster
+
+    t = time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):  # its progress bars
+        dsm_to_dtm(dsm_path=str(dsm_path), output_dir=str(out), nb_max_workers=2)
+    seconds = round(time.perf_counter() - t, 2)
+    return {"ground_rms": _ground_on(read_raster(out / "dtm.tif"), truth), "seconds": seconds}
 
 
 def _ground_on(dsm: Raster, truth: Path) -> float | None:
@@ -178,7 +205,7 @@ COLUMNS = [
 
 
 def print_table(rows: list[dict]) -> None:
-    names = [n for n in ("recon3d", "recon3d+vectors", "opencv") if any(n in r for r in rows)]
+    names = [n for n in ("recon3d", "recon3d+vectors", "opencv", "bulldozer") if any(n in r for r in rows)]
     head = f"{'scene':<15}{'who':<16}" + "".join(f"{c:>8}" for _, c in COLUMNS)
     print(head)
     for r in rows:
@@ -210,11 +237,13 @@ def print_ratios(rows: list[dict]) -> None:
         ours, theirs = r.get("recon3d", {}), r.get("opencv", {})
         if "error" not in ours and "error" not in theirs:
             _bench.print_ratios(r["scene"], "OpenCV", ours, theirs, RATIO_KEYS)
+        if "error" not in ours and "bulldozer" in r:
+            _bench.print_ratios(r["scene"], "bulldozer", ours, r["bulldozer"], [("ground_rms", "ground check pts m")])
 
 
 def print_summary(rows: list[dict]) -> None:
     """Median over the surveys of every column, per pipeline."""
-    for n in ("recon3d", "recon3d+vectors", "opencv"):
+    for n in ("recon3d", "recon3d+vectors", "opencv", "bulldozer"):
         ok = [r[n] for r in rows if n in r and "error" not in r[n]]
         if not ok:
             continue
