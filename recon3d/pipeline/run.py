@@ -894,8 +894,8 @@ def _on_observed_ground(r: Run, polygons: list) -> list:
 
 #: Largest share of a detected frame-stereo building's cells that may be holes of the
 #: DSM filled in from their rim (no point at all): a blob of filled cells is the rim of
-#: a hole the matcher left (on the family's held-out surveys 32 of 75 false detections,
-#: 4 of 748 true ones, all mostly holes themselves).
+#: a hole the matcher left (on 18 surveys of the frame family at 1000 px: 32 of 75 false
+#: detections, 4 of 748 true ones, all mostly holes themselves).
 MAX_FILLED_SHARE = 0.5
 
 
@@ -1172,18 +1172,16 @@ def make_orthophotos(r: Run) -> None:
                f"({100 * area / (judged.sum() * dsm.resolution**2):.1f} % of what they both see with texture): "
                "see ortho_diff.tif and the report's list")
     if cfg.textures:
-        _texture_model(r, views, on_dsm if cfg.surface == "dtm" else None, gsd, tolerance)
+        on_dtm = cfg.surface == "dtm"  # roofs lean there: they take a true orthophoto on the DSM
+        roofs = ortho.true_ortho(dsm, views, gsd, tolerance=tolerance, looks=on_dsm, objects=objects) if on_dtm else q.ortho
+        _texture_model(r, views, roofs)
 
 
-def _texture_model(r: Run, views: list, looks_on_dsm, gsd: float, tolerance: float) -> None:
-    """The city model with its roofs textured from a true orthophoto (the run's, unless
-    that one is on the DTM, where roofs lean) and its walls from the images."""
-    from recon3d.stereo import ortho, texture
+def _texture_model(r: Run, views: list, roofs) -> None:
+    """The city model with its roofs textured from the true orthophoto ``roofs`` and its walls from the images."""
+    from recon3d.stereo import texture
 
     q = r.quality
-    roofs = q.ortho if looks_on_dsm is None else ortho.true_ortho(
-        r.surface.dsm, views, gsd, tolerance=tolerance, looks=looks_on_dsm,
-        objects=ortho.raised_objects(r.terrain.ndsm, r.units.height(r.config.buildings.min_height)))
     q.textured = texture.texture_city(r.city, views, roofs)
     r.report["textures"] = q.textured.info
     for t in q.textured.textures:
