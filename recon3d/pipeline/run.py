@@ -679,6 +679,10 @@ def classify_ground(r: Run) -> None:
         method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes, surface.noise * u.vertical)
         params["method"] = {"value": method, "reason": why}
         terrain = ground_stage.terrain(surface, method, u)
+        if r.stereo == "frame":
+            terrain, raised = ground_stage.fill_pits(terrain, u.length(ground_stage.PIT_WIDTH),
+                                                     u.height(ground_stage.PIT_DEPTH))
+            params["pits_filled"] = {"value": raised, "reason": ground_stage.PIT_REASON}
         noise = surface.noise
         params.update(ground_stage.ground_tolerances(cfg, u, noise)[2])
     g = r.grid
