@@ -24,7 +24,7 @@ from recon3d.quality.change import (
     point_density,
     updated_model,
 )
-from tests.conftest import BDUNI, shared
+from conftest import BDUNI, shared
 
 CRS = pyproj.CRS.from_epsg(2154)
 X0, Y0 = 870000.0, 6617000.0  # national-grid sized coordinates
