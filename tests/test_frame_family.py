@@ -53,6 +53,16 @@ def surveys(tmp_path_factory):
     return out
 
 
+def _run_survey(seed: int, width: int, tmp_path):
+    """Random survey ``seed`` of the family rendered at ``width`` px and run: (state, score)."""
+    from recon3d.pipeline.run import run
+
+    folder = tmp_path / "scene"
+    write_block_scene(folder, random_spec(seed).with_width(width))
+    state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
+    return state, _score(folder, state)
+
+
 def _score(folder, state):
     observed = ~state.dsm_filled & np.isfinite(state.dsm.data)
     if state.dsm_unobserved is not None:
@@ -90,12 +100,7 @@ def test_mismatches_under_a_hilltop_do_not_sink_the_dtm(tmp_path):
     few cells of mismatches more than 10 m under every tie point around them pulled
     the top-hat DTM metres under the hilltop (ground check points 1.54 m RMS, footprint
     correctness 88 %); removed from the cloud, 0.09 m and 97 % (SMRF, chosen since)."""
-    from recon3d.pipeline.run import run
-
-    folder = tmp_path / "scene"
-    write_block_scene(folder, random_spec(0).with_width(1000))
-    state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
-    score = _score(folder, state)
+    state, score = _run_survey(0, 1000, tmp_path)
     assert state.auto["stereo"]["under_tie_points"]["value"] > 0
     assert score["ground_rms"] <= 0.3, score
     assert score["footprint_correctness"] >= 93.0, score
@@ -158,12 +163,7 @@ def test_hills_of_a_small_survey_stay_ground(tmp_path):
     60 m opening shaved its hilltop (ground check points 4.40 m RMS, footprint
     correctness 43 %); on a surface this clean (noise 0.06 m) SMRF is chosen, 0.12 m
     and 98 %."""
-    from recon3d.pipeline.run import run
-
-    folder = tmp_path / "scene"
-    write_block_scene(folder, random_spec(0).with_width(400))
-    state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
-    score = _score(folder, state)
+    state, score = _run_survey(0, 400, tmp_path)
     assert state.auto["ground"]["method"]["value"] == "smrf"
     assert score["ground_rms"] <= 0.3, score
     assert score["footprint_correctness"] >= 90.0, score
@@ -175,12 +175,7 @@ def test_guessed_disparities_shape_no_terrain(tmp_path):
     unmatched pixels filled from the far, lower side of a hillside put guesses 5-17 m
     under the ground, and the ground filter took them for terrain (ground check points
     1.73 m RMS, footprint correctness 79 %); from matched points only, 0.39 m and 92 %."""
-    from recon3d.pipeline.run import run
-
-    folder = tmp_path / "scene"
-    write_block_scene(folder, random_spec(26).with_width(1000))
-    state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
-    score = _score(folder, state)
+    state, score = _run_survey(26, 1000, tmp_path)
     assert score["ground_rms"] <= 0.6, score
     assert score["footprint_correctness"] >= 88.0, score
     # two blobs there were mostly filled-in holes: 22 of its 24 detections were on buildings
@@ -193,12 +188,7 @@ def test_a_pit_of_mismatches_is_no_hollow_in_the_dtm(tmp_path):
     many for the low-outlier test and above the tie points' 10 m margin, were taken for
     ground (ground check points 0.53 m RMS, one point 5.2 m low; bulldozer-dtm on the
     same DSM 0.09 m); with the terrain's narrow pits filled, 0.08 m."""
-    from recon3d.pipeline.run import run
-
-    folder = tmp_path / "scene"
-    write_block_scene(folder, random_spec(20).with_width(1000))
-    state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
-    score = _score(folder, state)
+    state, score = _run_survey(20, 1000, tmp_path)
     assert state.auto["ground"]["pits_filled"]["value"] > 0
     assert score["ground_rms"] <= 0.2, score
 

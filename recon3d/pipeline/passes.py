@@ -319,13 +319,12 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     is_ground = load(spec, tile, "ground", "is_ground")["is_ground"]
     decided = load(spec, tile, "vegetation_decide", "vegetation", "roughness")
     veg, rough = decided["vegetation"], decided["roughness"]
+    row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])
     if f.crowns is not None:
-        row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])
         height = xyz[:, 2] - f.dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
         veg = veg | (f.crowns[row, col] & ~is_ground & (np.nan_to_num(height) >= u.height(cfg.vegetation_min_height)))
     roof_surface = None
     if f.roofs is not None:
-        row, col = f.dtm.rowcol(xyz[:, 0], xyz[:, 1])
         inside = f.labels[row, col] > 0
         roof_surface = np.full(len(xyz), np.nan)
         if inside.any():

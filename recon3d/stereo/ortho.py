@@ -171,13 +171,17 @@ def image_gsd(views: list[View], surface: Raster) -> float:
     """Median ground size of a pixel of ``views`` at the surface's centre (CRS units)."""
     x0, y0 = surface.transform @ (surface.shape[1] / 2, surface.shape[0] / 2)
     z0 = float(np.nanmedian(surface.data)) if np.isfinite(surface.data).any() else 0.0
-    sizes = []
-    for v in views:
-        col, row = v.project(np.array([x0, x0 + 1.0, x0]), np.array([y0, y0, y0 + 1.0]), np.full(3, z0))
-        per_unit = 0.5 * (np.hypot(col[1] - col[0], row[1] - row[0]) + np.hypot(col[2] - col[0], row[2] - row[0]))
-        if np.isfinite(per_unit) and per_unit > 0:
-            sizes.append(1.0 / per_unit)
+    sizes = [1.0 / p for p in (pixels_per_unit(v, x0, y0, z0) for v in views) if p > 0]
     return float(np.median(sizes)) if sizes else surface.resolution
+
+
+def pixels_per_unit(view: View, x: float, y: float, z: float) -> float:
+    """Image pixels per CRS unit of horizontal ground at (x, y, z) in ``view``, the mean
+    of both axes; 0 where the point does not land."""
+    col, row = view.project(np.array([x, x + 1.0, x]), np.array([y, y, y + 1.0]), np.full(3, z))
+    col, row = np.asarray(col, np.float64), np.asarray(row, np.float64)
+    scale = 0.5 * (np.hypot(col[1] - col[0], row[1] - row[0]) + np.hypot(col[2] - col[0], row[2] - row[0]))
+    return float(scale) if np.isfinite(scale) else 0.0
 
 
 def _cell_centres(grid: Raster) -> tuple[np.ndarray, np.ndarray]:

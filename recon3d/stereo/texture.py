@@ -30,7 +30,7 @@ import numpy as np
 
 from recon3d.core.city import CityModel
 from recon3d.io.obj import highest_lod
-from recon3d.stereo.ortho import OrthoImage, View
+from recon3d.stereo.ortho import OrthoImage, View, pixels_per_unit
 
 __all__ = ["MAX_TEXTURE_SIZE", "Part", "Texture", "TexturedModel", "texture_city"]
 
@@ -187,19 +187,15 @@ def _signed_area(col: np.ndarray, row: np.ndarray, faces: np.ndarray) -> np.ndar
     return 0.5 * ((c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0]) - (c[:, 2] - c[:, 0]) * (r[:, 1] - r[:, 0]))
 
 
-def _ground_probe(view: View, centre: np.ndarray) -> tuple[float, float]:
-    """How ``view`` sees a small upward-facing triangle at ``centre`` (every aerial view
-    sees the ground from above): the sign of its projected area, which is that of every
-    face seen from the front, and the image pixels per CRS unit there (0, 0 if it does
-    not land)."""
+def _front_sign(view: View, centre: np.ndarray) -> float:
+    """Sign of the projected area of a face seen from the front in ``view``: that of a
+    small upward-facing triangle at ``centre``, which every aerial view sees from above
+    (0 if it does not land)."""
     x, y, z = centre
     col, row = (np.asarray(a, np.float64) for a in
                 view.project(np.array([x, x + 1.0, x]), np.array([y, y, y + 1.0]), np.full(3, z)))
     area = _signed_area(col, row, np.array([[0, 1, 2]]))[0]
-    scale = 0.5 * (np.hypot(col[1] - col[0], row[1] - row[0]) + np.hypot(col[2] - col[0], row[2] - row[0]))
-    if not (np.isfinite(area) and area != 0 and np.isfinite(scale)):
-        return 0.0, 0.0
-    return float(np.sign(area)), float(scale)
+    return float(np.sign(area)) if np.isfinite(area) else 0.0
 
 
 def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View]) -> tuple[np.ndarray, list]:
@@ -218,14 +214,14 @@ def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View]) -> tuple[
     for k, view in enumerate(views):
         col, row = (np.asarray(a, np.float64) for a in view.project(tri.world[:, 0], tri.world[:, 1], tri.world[:, 2]))
         projections.append((col, row))
-        sign, scale = _ground_probe(view, centre)
+        sign = _front_sign(view, centre)
         if sign == 0 or not len(wall_faces):
             continue
         h, w = view.image.shape[:2]
         on = np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)
         area = np.bincount(wall_surface, weights=sign * _signed_area(col, row, wall_faces), minlength=n_surf)
         off = np.bincount(wall_surface, weights=(~on[wall_faces].all(axis=1)).astype(np.float64), minlength=n_surf)
-        frontal = world_area * scale**2
+        frontal = world_area * pixels_per_unit(view, *centre) ** 2
         better = (off == 0) & (area > best_area) & (area >= MIN_WALL_VIEW * frontal)
         best[better], best_area[better] = k, area[better]
     return best, projections
