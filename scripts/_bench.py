@@ -89,8 +89,9 @@ def ratio(a, b) -> float:
 def print_ratios(title: str, peer: str, ours: dict, theirs: dict, keys: list[tuple[str, str]]) -> None:
     """One block: each figure of ``keys`` (key, label) for recon3d and ``peer``, and recon3d / peer."""
     print(f"  {title}: recon3d beside {peer}")
-    print(f"    {'figure':<22}{'recon3d':>11}{peer:>11}{'ratio':>8}")
+    width = max(11, len(peer) + 2)  # a long peer name ("recon3d before") keeps its column apart
+    print(f"    {'figure':<22}{'recon3d':>11}{peer:>{width}}{'ratio':>8}")
     for key, label in keys:
         a, b = ours.get(key), theirs.get(key)
-        cells = [f"{v:>11.4g}" if isinstance(v, int | float) else f"{'-':>11}" for v in (a, b)]
+        cells = [f"{v:>{w}.4g}" if isinstance(v, int | float) else f"{'-':>{w}}" for v, w in ((a, 11), (b, width))]
         print(f"    {label:<22}{''.join(cells)}{ratio(a, b):>8.2f}")

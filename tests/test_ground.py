@@ -127,7 +127,6 @@ def test_rooftop_only_and_tiny_clouds():
 
 def test_breaklines_and_spot_heights_are_honoured():
     cloud = read_las(shared(IGN))
-    units = crs_units(cloud.crs)
     grid = dsm_stage.make_dsm(cloud, 0.5, max_hole_cells=100)
     ground = cloud.xyz[cloud.classification == 2]
     free = dtm_stage.make_dtm(ground, grid)

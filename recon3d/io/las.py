@@ -13,7 +13,7 @@ from laspy.vlrs.known import WktCoordinateSystemVlr
 
 from recon3d.core.dates import today
 from recon3d.core.geo import check_area_of_use, crs_name
-from recon3d.core.pointcloud import PointCloud
+from recon3d.core.pointcloud import PointCloud, column_bounds
 from recon3d.errors import CRSError, InputError
 from recon3d.io import atomic_path, require_file
 
@@ -81,7 +81,7 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     file_crs = _header_crs(las, path)
     resolved = resolve_crs(file_crs, crs, path)
     if resolved is not None:
-        check_area_of_use(resolved, xyz.min(axis=0), xyz.max(axis=0), source=str(path))
+        check_area_of_use(resolved, *column_bounds(xyz), source=str(path))
     return PointCloud(xyz, attributes, resolved)
 
 
@@ -205,7 +205,7 @@ def write_las(cloud: PointCloud, path: str | Path, date: str | None = None) -> N
     Point format 6 without colour, 7 with RGB, 8 with RGB and NIR; ``date`` as for
     :class:`LasStreamWriter`.
     """
-    with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.xyz.min(axis=0), date) as writer:
+    with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.bounds[0], date) as writer:
         writer.write(cloud)
 
 

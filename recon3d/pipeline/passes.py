@@ -24,7 +24,7 @@ from recon3d.buildings import classes, vegetation
 from recon3d.buildings.detect import fine_surface
 from recon3d.config import PipelineConfig
 from recon3d.core.geo import Units
-from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.pointcloud import ASPRS, PointCloud, column_bounds
 from recon3d.core.raster import Raster
 from recon3d.pipeline.points import CloudSummary, TilePoints, cell_rowcol, lexsort_ties
 from recon3d.pipeline.tiling import BLOCK, Tile, morton
@@ -150,8 +150,7 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
                                              quality_cut=spec.summary.quality_cut, origin=(rows.start, cols.start))
     seen = np.flatnonzero(first & keep)
     xy = cloud.xyz[seen, :2]
-    out["surface_lo"] = xy.min(axis=0) if len(xy) else np.full(2, np.inf)
-    out["surface_hi"] = xy.max(axis=0) if len(xy) else np.full(2, -np.inf)
+    out["surface_lo"], out["surface_hi"] = column_bounds(xy) if len(xy) else (np.full(2, np.inf), np.full(2, -np.inf))
     return out
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import pyproj
 
 from recon3d.core.geo import check_area_of_use, crs_name
-from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.pointcloud import ASPRS, PointCloud, column_bounds
 from recon3d.errors import CRSError, InputError
 from recon3d.terrain.dsm import SpacingGrid
 
@@ -153,7 +153,7 @@ class _Part:
         xyz, a = cloud.xyz, cloud.attributes
         if not len(cloud):
             return cls(0, np.full(3, np.inf), np.full(3, -np.inf), np.zeros(grid.shape, bool))
-        part = cls(len(cloud), xyz.min(axis=0), xyz.max(axis=0), grid.occupancy(xyz[:, :2]))
+        part = cls(len(cloud), *column_bounds(xyz), grid.occupancy(xyz[:, :2]))
         if "classification" in a:
             part.ground = int(np.count_nonzero(a["classification"] == ASPRS.GROUND))
         if "number_of_returns" in a:
@@ -417,7 +417,8 @@ def _bucket_file(job: tuple) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
                 for n in names:
                     rec[n] = np.asarray(chunk[n])
                 _append(rec, bucket, folder, index)
-                lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+                chunk_lo, chunk_hi = column_bounds(xyz)
+                lo, hi = np.minimum(lo, chunk_lo), np.maximum(hi, chunk_hi)
                 keys, counts = np.unique(np.floor(xyz[:, 2]).astype(np.int64), return_counts=True)
                 for k, c in zip(keys.tolist(), counts.tolist(), strict=True):
                     heights[k] = heights.get(k, 0) + c

@@ -10,7 +10,7 @@ import numpy as np
 from scipy import ndimage
 
 from recon3d.core.geo import Units
-from recon3d.core.pointcloud import PointCloud
+from recon3d.core.pointcloud import PointCloud, column_bounds
 from recon3d.core.raster import Raster, grid_for_bounds
 
 log = logging.getLogger(__name__)
@@ -42,7 +42,7 @@ def point_spacing(xy: np.ndarray) -> float:
     ----------
     xy : (n, 2) float
     """
-    grid = SpacingGrid.over(xy.min(axis=0), xy.max(axis=0))
+    grid = SpacingGrid.over(*column_bounds(xy))
     return grid.spacing(grid.occupancy(xy), len(xy))
 
 
