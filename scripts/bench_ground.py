@@ -9,8 +9,8 @@ repository root) four filters are scored against the provider's classes:
 ``pdal_smrf``
     PDAL's ``filters.smrf`` with its defaults, after ``filters.assign`` clears the
     provider's classes; its time is the whole ``pdal pipeline`` process (read, filter,
-    write). PDAL is a peer only: ``apt-get install -y pdal`` (Debian 13+, Ubuntu) or
-    conda-forge; without it a full run refuses unless ``--no-pdal`` is given.
+    write). PDAL is a peer only: conda-forge, Ubuntu's package, or on Debian
+    ``sudo sh scripts/pdal_chroot.sh``; without it a full run refuses unless ``--no-pdal`` is given.
 ``csf``
     CSF (Zhang et al., 2016; the ``cloth-simulation-filter`` package) with the defaults
     of its constructor, read from ``CSF.CSF().params`` at run time.
@@ -96,7 +96,7 @@ QUICK_FILE = "ign_village_2154.laz"
 
 #: How to install the peers (benchmark-only, not dependencies).
 CSF_INSTALL = "pip install -e '.[bench]'"
-PDAL_INSTALL = "apt-get install -y pdal (Debian 13+, Ubuntu) or conda-forge pdal"
+PDAL_INSTALL = "conda-forge pdal, Ubuntu's apt pdal, or on Debian: sudo sh scripts/pdal_chroot.sh"
 
 #: CSF's parameters (``interations`` is the package's spelling).
 CSF_PARAMS = (

@@ -18,8 +18,9 @@ keeping the median wall time and the peak RSS (``wait4``):
 ``--baseline DIR`` adds an older recon3d (a source tree, e.g. ``git archive REV | tar
 -x -C DIR``) run the same way in the same benchmark, for before/after tables.
 
-PDAL is a peer only, not a dependency: ``apt-get install -y pdal`` (Debian 13 and
-later, Ubuntu) or conda-forge's ``pdal``. Without it a full run refuses unless
+PDAL is a peer only, not a dependency: conda-forge's ``pdal``, Ubuntu's package, or on
+Debian 12 and later (which do not package it) ``sudo sh scripts/pdal_chroot.sh``
+(Debian 11's PDAL 2.2.0 in a chroot). Without it a full run refuses unless
 ``--no-pdal`` is given; ``--quick`` (one copy of the strip, one run) notes it and goes on.
 
     .venv/bin/python scripts/bench_terrain.py [--tiles 3 1] [--repeat 3] [--baseline DIR] [--no-pdal] [--quick]
@@ -42,7 +43,7 @@ import _bench
 
 DATA = _bench.SHARED / "lidar" / "delft_ahn3_strip.laz"
 CRS = "EPSG:7415"  # the Delft strip's, not in its header; a file with its own CRS keeps it
-PDAL_INSTALL = "apt-get install -y pdal (Debian 13+, Ubuntu) or conda-forge pdal"
+PDAL_INSTALL = "conda-forge pdal, Ubuntu's apt pdal, or on Debian: sudo sh scripts/pdal_chroot.sh"
 
 
 def write_tiled(data: Path, kx: int, ky: int, out: Path) -> int:
