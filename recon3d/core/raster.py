@@ -136,25 +136,40 @@ class Raster:
             ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
             out[ok] = self.data[r[ok], c[ok]]
             return out
-        fr = np.clip(fr, 0, rows - 1)
-        fc = np.clip(fc, 0, cols - 1)
+        np.clip(fr, 0, rows - 1, out=fr)
+        np.clip(fc, 0, cols - 1, out=fc)
         r0 = np.minimum(np.floor(fr).astype(np.int64), max(rows - 2, 0))
         c0 = np.minimum(np.floor(fc).astype(np.int64), max(cols - 2, 0))
-        r1, c1 = np.minimum(r0 + 1, rows - 1), np.minimum(c0 + 1, cols - 1)
-        dr, dc = fr - r0, fc - c0
+        fr -= r0  # the fractions dr and dc, in place
+        fc -= c0
+        # flat indices of the four cells (the next row and column clamped at the edge)
+        i00 = r0 * cols
+        i00 += c0
+        down = (r0 < rows - 1) * cols
+        right = (c0 < cols - 1).astype(np.int64)
         d = self.data
+        if d.flags.c_contiguous:
+            gather = d.ravel().take
+        else:  # a window of columns: no flat view of its cells
+            def gather(i):
+                return d[i // cols, i % cols]
 
-        def at(r, c):  # the cells in float64, not the whole grid cast (a copy per call)
-            return d[r, c].astype(np.float64)
-
-        out = (
-            at(r0, c0) * (1 - dr) * (1 - dc)
-            + at(r0, c1) * (1 - dr) * dc
-            + at(r1, c0) * dr * (1 - dc)
-            + at(r1, c1) * dr * dc
-        )
+        out = _corner(gather, i00, 1 - fr, 1 - fc)  # term by term, in the order of the formula
+        out += _corner(gather, i00 + right, 1 - fr, fc)
+        i00 += down
+        out += _corner(gather, i00, fr, 1 - fc)
+        out += _corner(gather, i00 + right, fr, fc)
         inside = (
             (x >= self.bounds[0]) & (x <= self.bounds[2]) & (y >= self.bounds[1]) & (y <= self.bounds[3])
         )
         out[~inside] = np.nan
         return out
+
+
+def _corner(gather, index: np.ndarray, wr: np.ndarray, wc: np.ndarray) -> np.ndarray:
+    """One bilinear term, (n,) float64: the cells ``gather(index)`` of the flat indices
+    (cast per cell, not the whole grid) times ``wr`` times ``wc``, in that order."""
+    term = gather(index).astype(np.float64)
+    term *= wr
+    term *= wc
+    return term
