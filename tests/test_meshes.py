@@ -158,6 +158,25 @@ def test_t_junction_solids_were_open_before_the_split():
     assert len(np.unique(tri)) < len(xy)  # ... whose roof earcut alone triangulates without some vertices
 
 
+def test_a_nearly_straight_shared_vertex_leaves_no_sliver_twice():
+    """A 10 m cube whose roof and front wall share their edge through a vertex 10 um off
+    the straight line (beyond the fold test, within the weld): for 4 of the 25 ring
+    starts earcut cuts that vertex's sliver off both surfaces (the Delft strip met one
+    when the DTM under a block moved). The pair cancels; the mesh must stay watertight."""
+    eps = 1e-5
+    v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0], [0, 0, 10], [10, 0, 10], [10, 10, 10],
+                  [0, 10, 10], [5, -eps, 10 + eps]], float)
+    for roof_start in range(5):
+        for wall_start in range(5):
+            roof, front = np.roll([4, 8, 5, 6, 7], roof_start), np.roll([0, 1, 5, 8, 4], wall_start)
+            solid = Solid(v, quads(v, [0, 3, 2, 1], roof, front, [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]),
+                          ["GroundSurface", "RoofSurface"] + ["WallSurface"] * 4)
+            mesh = solid.to_trimesh()
+            assert mesh.is_watertight and mesh.is_winding_consistent, (roof_start, wall_start)
+            assert mesh.volume == pytest.approx(1000.0, abs=1e-3)
+            assert manifold_status(mesh.vertices, mesh.faces) == "NoError"
+
+
 def test_split_ring_edges_inserts_in_order():
     v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [7, 0, 0], [2, 0, 0], [5, 0.0004, 0], [5, 1, 0]], float)
     (ring,) = split_ring_edges(v, [np.array([0, 1, 2])], 1e-3)

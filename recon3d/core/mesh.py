@@ -479,7 +479,38 @@ def solid_mesh(vertices: np.ndarray, surfaces: list[list[np.ndarray]], tol: floa
     compact[used] = np.arange(len(used))
     split = iter(split_ring_edges(points, [compact[r] for r in flat], tol))
     faces, surface = triangulate_surfaces(points, [[next(split) for _ in rings] for rings in kept])
-    return SolidMesh(points, faces, surface)
+    keep = ~_cancelling_pairs(faces)
+    return SolidMesh(points, faces[keep], surface[keep])
+
+
+def _cancelling_pairs(faces: np.ndarray) -> np.ndarray:
+    """(m,) True for triangles that cancel: the same three vertices wound both ways.
+
+    Where two surfaces meet along a polyline whose middle vertex is almost straight
+    (off the line by more than the fold test's 1e-9 of the surface's extent, less
+    than the weld tolerance), earcut may cut that vertex's sliver off both surfaces:
+    one triangle, twice, facing opposite ways. The pair encloses nothing, but its long
+    edge is then used by four triangles and the mesh is not watertight for trimesh,
+    Blender or a glTF validator. Dropping both leaves the same closed surface. Of k
+    and l copies wound each way, min(k, l) of each are dropped, the first ones.
+
+    Parameters
+    ----------
+    faces : (m, 3) int
+    """
+    drop = np.zeros(len(faces), bool)
+    if len(faces) < 2:
+        return drop
+    f = np.asarray(faces)
+    odd = ((f[:, 0] > f[:, 1]).astype(np.int8) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2 == 1
+    _, group, count = np.unique(np.sort(f, axis=1), axis=0, return_inverse=True, return_counts=True)
+    group = group.ravel()
+    for g in np.flatnonzero(count > 1):  # rare: a few slivers per solid at most
+        members = np.flatnonzero(group == g)
+        ways = members[odd[members]], members[~odd[members]]
+        n = min(len(ways[0]), len(ways[1]))
+        drop[ways[0][:n]] = drop[ways[1][:n]] = True
+    return drop
 
 
 def welded_rings(label: np.ndarray, surfaces: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
