@@ -143,17 +143,12 @@ class Raster:
         fr -= r0  # the fractions dr and dc, in place
         fc -= c0
         # flat indices of the four cells (the next row and column clamped at the edge)
-        i00 = r0 * cols
+        row_step, flat = _flat_cells(self.data)
+        i00 = r0 * row_step
         i00 += c0
-        down = (r0 < rows - 1) * cols
+        down = (r0 < rows - 1) * row_step
         right = (c0 < cols - 1).astype(np.int64)
-        d = self.data
-        if d.flags.c_contiguous:
-            gather = d.ravel().take
-        else:  # a window of columns: no flat view of its cells
-            def gather(i):
-                return d[i // cols, i % cols]
-
+        gather = flat.take
         out = _corner(gather, i00, 1 - fr, 1 - fc)  # term by term, in the order of the formula
         out += _corner(gather, i00 + right, 1 - fr, fc)
         i00 += down
@@ -164,6 +159,28 @@ class Raster:
         )
         out[~inside] = np.nan
         return out
+
+
+def _flat_cells(data: np.ndarray) -> tuple[int, np.ndarray]:
+    """A 1-D view of a grid's cells and the step between its rows in it.
+
+    A window of a larger row-major grid (rows and columns cut off) is viewed in place
+    over the span of the larger grid's buffer it covers; any other layout is copied.
+
+    Returns
+    -------
+    row_step : int
+    flat : (m,) array
+        Cell (r, c) is ``flat[r * row_step + c]``.
+    """
+    k = data.itemsize
+    rows, cols = data.shape
+    if data.size and data.strides[1] == k and data.strides[0] >= 0 and data.strides[0] % k == 0:
+        step = data.strides[0] // k
+        span = (rows - 1) * step + cols
+        return step, np.lib.stride_tricks.as_strided(data, shape=(span,), strides=(k,), writeable=False)
+    data = np.ascontiguousarray(data)
+    return cols, data.ravel()
 
 
 def _corner(gather, index: np.ndarray, wr: np.ndarray, wc: np.ndarray) -> np.ndarray:
