@@ -363,6 +363,22 @@ def test_blob_descriptors():
     assert 0.4 < d["fill_ratio"] < 1.0
 
 
+def test_symmetric_eigenvalues_agree_with_lapack():
+    """The closed form against numpy's eigvalsh on neighbourhoods of roofs, crowns, wires and
+    exact degenerate cases (a plane without noise, a line, a point, an identity)."""
+    rng = np.random.default_rng(3)
+    shapes = np.array([[1, 1, 1e-3], [1, 1, 1], [1, 1e-2, 1e-2], [0.5, 0.5, 0.0], [1, 0, 0], [0, 0, 0]])
+    p = rng.normal(size=(6000, 10, 3)) * shapes[np.arange(6000) % 6][:, None, :] * rng.uniform(0.1, 10, (6000, 1, 1))
+    p -= p.mean(axis=1, keepdims=True)
+    c = np.concatenate([np.matmul(p.transpose(0, 2, 1), p) / 10, 4.0 * np.eye(3)[None]])
+    expected = np.linalg.eigvalsh(c)
+    got = np.column_stack(vegetation.symmetric_eigenvalues(c))
+    assert np.all(np.abs(got - expected) <= 2e-8 * np.maximum(expected[:, 2:], 1e-12))
+    separate = (np.diff(expected, axis=1) > 1e-3 * expected[:, 2:]).all(axis=1)  # no two eigenvalues coincide
+    assert np.all(np.abs(got - expected)[separate] <= 1e-10 * expected[separate, 2:])
+    assert np.allclose(got[-1], 4.0)
+
+
 def test_classify_vegetation_synthetic():
     rng = np.random.default_rng(1)
     gx, gy = np.meshgrid(np.arange(0, 20, 0.3), np.arange(0, 20, 0.3))
