@@ -11,7 +11,8 @@ memory within 1.25 x of the 4 x survey's whatever the area, 2 workers at least 1
 faster than 1 on the 16 x survey, and a 20 M-point survey through the whole pipeline
 on 2 cores in 20 minutes with at most 4 GB.
 
-No peer runs beside it: PDAL (pdal-parallelizer) has no Debian 12 package, and no peer
+No peer runs beside it: pdal-parallelizer needs PDAL's Python binding, which no
+registry here offers (bench_terrain.py times PDAL's own terrain pipeline), and no peer
 builds the whole product set (DSM, DTM, classes, LoD2.2 solids) to time against.
 
     .venv/bin/python scripts/bench_scale.py [--sizes 1 2 4 8] [--workers 2] [--compare-workers 4] [--quick]
@@ -133,7 +134,7 @@ def main() -> int:
         multi = next(rec for k, rec in rows if k == args.compare_workers)
         print(f"\n{args.compare_workers ** 2} x survey: 1 worker {single['wall']:.1f} s, {args.workers} workers "
               f"{multi['wall']:.1f} s: {single['wall'] / multi['wall']:.2f} x faster (target >= 1.7 with 2)")
-    print("peers: none run here (PDAL has no Debian 12 package; no peer builds the same products)")
+    print("peers: none run here (no peer builds the same products; PDAL's terrain part: bench_terrain.py)")
     return 0
 
 
