@@ -177,6 +177,23 @@ def test_a_nearly_straight_shared_vertex_leaves_no_sliver_twice():
             assert manifold_status(mesh.vertices, mesh.faces) == "NoError"
 
 
+def test_triangle_check_sees_what_the_polygon_check_cannot():
+    """A closed polygon shell whose triangles are not closed (a sliver twice, one way and
+    back, as earcut made before the pair was cancelled) fails the export check only."""
+    from recon3d.core.mesh import SolidMesh
+    from recon3d.quality.meshcheck import triangle_issues
+
+    solid = stepped_box()
+    solid = Solid(solid.vertices, solid.surfaces, solid.semantics)
+    good = solid.mesh()
+    assert not triangle_issues(solid)
+    twice = np.array([[good.faces[0, 0], good.faces[0, 1], good.faces[1, 2]]])
+    solid._mesh = SolidMesh(good.vertices, np.concatenate([good.faces, twice, twice[:, ::-1]]),
+                            np.r_[good.surface, 0, 1])
+    assert {i.code for i in triangle_issues(solid)} == {304}
+    assert not solid.to_trimesh().is_watertight
+
+
 def test_split_ring_edges_inserts_in_order():
     v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [7, 0, 0], [2, 0, 0], [5, 0.0004, 0], [5, 1, 0]], float)
     (ring,) = split_ring_edges(v, [np.array([0, 1, 2])], 1e-3)

@@ -401,9 +401,11 @@ def lod13_solid(
 
 
 def _issues(solid: Solid, u) -> list:
-    from recon3d.quality.meshcheck import check_solid
+    """The polygon shell's val3dity issues, then (when it has none) those of the triangles
+    every export is written from: a building is only kept when both are closed."""
+    from recon3d.quality.meshcheck import check_solid, triangle_issues
 
-    return check_solid(solid, planarity_tol=u.length(0.01), snap=u.length(0.001))
+    return check_solid(solid, planarity_tol=u.length(0.01), snap=u.length(0.001)) or triangle_issues(solid)
 
 
 def _codes(issues: list) -> tuple[int, ...]:

@@ -37,7 +37,7 @@ anything, must be watertight, consistently wound, enclose a positive volume
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse
@@ -59,6 +59,7 @@ __all__ = [
     "check_solid",
     "manifold_status",
     "snap_vertices",
+    "triangle_issues",
 ]
 
 #: Error code -> name, as in val3dity / the CityGML QIE.
@@ -339,6 +340,19 @@ def _few(values: np.ndarray, limit: int = 6) -> str:
 
 
 # --------------------------------------------------------------------------- meshes of the exports
+
+
+def triangle_issues(solid: Solid) -> list[MeshIssue]:
+    """302, 304 and 307 of the triangles the exports hold (:meth:`Solid.mesh`).
+
+    Every edge must be used by exactly two triangles, once each way: what trimesh,
+    Blender and glTF validators ask of a closed mesh. A valid polygon shell can still
+    be triangulated into a mesh that is not (see :func:`check_solid`, which looks at
+    the rings only); this check sees the triangulation's faults.
+    """
+    _, faces, surface = solid.mesh()
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return [replace(i, detail=f"in the triangles: {i.detail}") for i in _shell_issues(edges, np.tile(surface, 3))]
 
 
 @dataclass(frozen=True)
