@@ -260,7 +260,7 @@ def check_area_of_use(crs: pyproj.CRS, lo, hi, *, source: str) -> None:
     xs = np.array([lo[0], hi[0], lo[0], hi[0], 0.5 * (lo[0] + hi[0])], float)
     ys = np.array([lo[1], lo[1], hi[1], hi[1], 0.5 * (lo[1] + hi[1])], float)
     try:
-        lon, lat = pyproj.Transformer.from_crs(crs, 4326, always_xy=True).transform(xs, ys)
+        lon, lat = _to_lonlat(crs).transform(xs, ys)
     except pyproj.exceptions.ProjError:
         lon = lat = np.full(5, np.nan)
     m = AREA_OF_USE_MARGIN
@@ -271,6 +271,13 @@ def check_area_of_use(crs: pyproj.CRS, lo, hi, *, source: str) -> None:
             f"{source}: its coordinates, read in {crs_name(crs)}, lie at {where}, outside that CRS's area of use "
             f"({area.name}); is the CRS right?"
         )
+
+
+@functools.lru_cache(maxsize=16)
+def _to_lonlat(crs: pyproj.CRS) -> pyproj.Transformer:
+    """A transformer to longitude and latitude, made once per CRS: making one costs
+    about 25 ms, and a survey of a few hundred tiles checks every tile's extent."""
+    return pyproj.Transformer.from_crs(crs, 4326, always_xy=True)
 
 
 def to_rasterio_crs(crs: pyproj.CRS | None):
