@@ -23,9 +23,10 @@ from affine import Affine
 from recon3d.buildings.extrude import lod1_solid
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame
+from recon3d.core.raster import Raster
 from recon3d.io.gltf import GLTF_FROM_LOCAL, write_textured_glb
 from recon3d.stereo.ortho import OrthoImage, View
-from recon3d.stereo.texture import texture_city
+from recon3d.stereo.texture import hidden, texture_city
 
 TESTS = Path(__file__).parent
 ORIGIN = np.array([500_000.0, 4_000_000.0, 100.0])
@@ -123,6 +124,41 @@ def test_each_wall_takes_the_image_that_sees_it_and_points_at_it(city):
     assert np.abs(got - expected).max() <= 1.5
     assert model.info["wall_surfaces"] == 4 and model.info["wall_surfaces_textured"] == 3
     assert model.info["wall_surfaces_from_ortho"] == 0  # 9 m walls are no steps
+
+
+def dsm_with(*blocks) -> Raster:
+    """A 0.5 m DSM of flat ground (height GROUND) with the box and ``blocks``
+    ((xmin, ymin, xmax, ymax, top) each) standing on it."""
+    cell, x0, y1 = 0.5, 499_990.0, 4_000_040.0
+    rows, cols = 120, 160
+    x = x0 + (np.arange(cols) + 0.5) * cell
+    y = y1 - (np.arange(rows) + 0.5) * cell
+    xx, yy = np.meshgrid(x, y)
+    z = np.full((rows, cols), GROUND, np.float32)
+    for xmin, ymin, xmax, ymax, top in [(*BOX.bounds, ROOF), *blocks]:
+        z[(xx >= xmin) & (xx <= xmax) & (yy >= ymin) & (yy <= ymax)] = top
+    return Raster(z, Affine(cell, 0.0, x0, 0.0, -cell, y1), pyproj.CRS.from_epsg(32631))
+
+
+def test_a_wall_hidden_in_its_best_image_takes_the_next(city):
+    """The south wall goes to the east image, which sees it larger. A 20 m hedge 3 m in
+    front of it, to the east, stands on most lines of sight from the wall to the east
+    camera and on none to the west one (nor on those from the east wall): given the DSM,
+    the wall takes the west image. The box's own DSM hides none of its walls."""
+    views = [pinhole("east", *EAST), pinhole("west", *WEST)]
+
+    def south_wall_image(dsm):
+        model = texture_city(city, views, ortho_ramp(), dsm=dsm)
+        for p in model.parts["b1"]:
+            if p.texture >= 0 and (wall_normals(p).round(6) == (0.0, -1.0, 0.0)).all(axis=1).any():
+                return model.textures[p.texture].name, model.info["wall_surfaces_textured"]
+        return None, model.info["wall_surfaces_textured"]
+
+    assert south_wall_image(None) == south_wall_image(dsm_with()) == ("east", 3)
+    hedge = (500_017.0, 4_000_006.0, 500_026.0, 4_000_007.0, GROUND + 20.0)
+    assert south_wall_image(dsm_with(hedge)) == ("west", 3)
+    assert not hidden(views[1], np.array([[500_016.0, 4_000_009.5, 104.0]]), dsm_with(hedge))[0]
+    assert hidden(views[0], np.array([[500_016.0, 4_000_009.5, 104.0]]), dsm_with(hedge))[0]
 
 
 def test_textures_over_the_limit_are_reduced_and_still_point_right(city):

@@ -1186,7 +1186,7 @@ def _texture_model(r: Run, views: list, roofs) -> None:
     from recon3d.stereo import texture
 
     q = r.quality
-    q.textured = texture.texture_city(r.city, views, roofs)
+    q.textured = texture.texture_city(r.city, views, roofs, dsm=r.surface.dsm)
     r.report["textures"] = q.textured.info
     for t in q.textured.textures:
         if t.reduced > 1:

@@ -15,9 +15,14 @@ each group becomes one textured primitive of ``buildings_textured.glb``
 function of the position within a group, every group is welded; the groups of a
 building meet at eaves and wall edges, where each keeps its own copy of the corner.
 
-Limits, stated so nobody relies on more: walls are not tested for occlusion by other
-buildings or trees (a wall hidden behind a tree in its best image shows the tree);
-each texture is cut to the part the model uses and reduced to :data:`MAX_TEXTURE_SIZE`
+Given the DSM, a wall is only textured from an image whose line of sight to it the DSM
+leaves clear: points on the wall are followed up their ray to the camera, and a wall more
+than :data:`MAX_HIDDEN_SHARE` of whose points a tree, another building or its own
+neighbour hides in an image is not textured from that image (the next best is taken).
+
+Limits, stated so nobody relies on more: the test sees what the DSM holds, so a thin
+occluder the DSM smooths away (a lamp post, a bare branch) still shows on a wall; each
+texture is cut to the part the model uses and reduced to :data:`MAX_TEXTURE_SIZE`
 pixels on its long side when larger, which is said in run.json and on the terminal.
 """
 
@@ -29,10 +34,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon3d.core.city import CityModel
+from recon3d.core.raster import Raster
 from recon3d.io.obj import highest_lod
 from recon3d.stereo.ortho import OrthoImage, View, pixels_per_unit
 
-__all__ = ["MAX_TEXTURE_SIZE", "Part", "Texture", "TexturedModel", "texture_city"]
+__all__ = ["MAX_TEXTURE_SIZE", "Part", "Texture", "TexturedModel", "hidden", "texture_city"]
 
 #: Longest side (pixels) of a texture: what every WebGL implementation takes (desktop
 #: and mobile GPUs report MAX_TEXTURE_SIZE >= 4096), so the model opens in any viewer.
@@ -48,6 +54,16 @@ MIN_WALL_VIEW = 0.15
 #: between the parts of a roof and parapets, take the orthophoto's colours like the
 #: roof around them, not the plain colour of untextured walls.
 STEP_WALL_HEIGHT = 1.0
+
+#: Largest share of a wall's sample points the DSM may hide from an image that textures it.
+MAX_HIDDEN_SHARE = 0.25
+
+#: Height (CRS units) the DSM must rise above a line of sight to hide what is behind it:
+#: a stereo DSM blurs the foot of a wall over a cell or two, which must not hide the wall.
+HIDING_HEIGHT = 1.0
+
+#: Most samples along one line of sight (the march stops where the ray passes the DSM's top).
+MAX_RAY_STEPS = 400
 
 #: Pixels kept around the texture coordinates a crop of an image must hold: bilinear
 #: sampling and mipmaps read the neighbours of the last texel.
@@ -198,10 +214,77 @@ def _front_sign(view: View, centre: np.ndarray) -> float:
     return float(np.sign(area)) if np.isfinite(area) else 0.0
 
 
-def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View]) -> tuple[np.ndarray, list]:
+def _wall_samples(tri: _Triangles, walls: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the wall triangles, ``step`` out from the wall, and the surface of each.
+
+    Each triangle gives its centroid and the three points halfway from it to its
+    corners; ``step`` (a DSM cell) out along the outward normal, so that the wall's own
+    edge cell of the DSM does not hide it.
+
+    Returns
+    -------
+    points : (4 m, 3) float
+    surface : (4 m,) int
+    """
+    corners = tri.world[tri.faces[walls]]
+    if not len(corners):
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal[:, 2] = 0.0  # out of the wall, level (walls are vertical)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    centre = corners.mean(axis=1)
+    points = np.concatenate([centre[:, None], 0.5 * (centre[:, None] + corners)], axis=1) + step * normal[:, None]
+    return points.reshape(-1, 3), np.repeat(tri.surface[walls], 4)
+
+
+def hidden(view: View, points: np.ndarray, dsm: Raster, *, hiding: float = HIDING_HEIGHT) -> np.ndarray:
+    """(n,) bool: points whose line of sight to ``view`` passes under the DSM.
+
+    The line of sight is found from the projection alone (any camera model): the
+    horizontal shift per unit of height that keeps a point on the same pixel, from the
+    projection's derivatives. Each ray is followed upwards a DSM cell at a time until it
+    passes the DSM's highest cell; it is blocked where the DSM stands more than
+    ``hiding`` above it. Points the view does not see at all (behind it) are hidden.
+
+    Parameters
+    ----------
+    view : View
+    points : (n, 3) float
+        World coordinates (the DSM's CRS).
+    dsm : Raster
+    hiding : float
+        CRS height units.
+    """
+    x, y, z = (points[:, k].astype(np.float64) for k in range(3))
+    col, row = (np.asarray(a, np.float64) for a in view.project(x, y, z))
+    derivatives = [view.project(x + dx, y + dy, z + dz) for dx, dy, dz in ((1, 0, 0), (0, 1, 0), (0, 0, 1))]
+    (ex, nx), (ey, ny), (ez, nz) = ((np.asarray(c) - col, np.asarray(r) - row) for c, r in derivatives)
+    det = ex * ny - ey * nx  # pixel motion per metre east and north; solve for the shift undoing a metre up
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sx = (-ez * ny + ey * nz) / det
+        sy = (-ex * nz + nx * ez) / det
+    blocked = ~(np.isfinite(sx) & np.isfinite(sy))
+    sx, sy = np.nan_to_num(sx), np.nan_to_num(sy)
+    top = float(np.nanmax(dsm.data)) if np.isfinite(dsm.data).any() else -np.inf
+    cell = dsm.resolution
+    dt = np.minimum(cell / np.maximum(np.hypot(sx, sy), 1e-9), 2.0 * cell)  # up per step: a cell sideways at most
+    steps = np.clip(np.ceil((top - z) / dt), 0, MAX_RAY_STEPS).astype(np.int64)
+    for k in range(1, int(steps.max(initial=0)) + 1):
+        live = np.flatnonzero((k <= steps) & ~blocked)
+        if not len(live):
+            break
+        t = k * dt[live]
+        ground = dsm.sample(x[live] + t * sx[live], y[live] + t * sy[live], bilinear=False)
+        blocked[live] |= np.nan_to_num(ground, nan=-np.inf) > z[live] + t + hiding
+    return blocked
+
+
+def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View],
+                dsm: Raster | None = None) -> tuple[np.ndarray, list]:
     """Per wall surface, the view that sees it largest from the front, with all its
-    corners on the image and at least :data:`MIN_WALL_VIEW` of its frontal size (-1:
-    none), and every view's projection of the vertices."""
+    corners on the image, at least :data:`MIN_WALL_VIEW` of its frontal size and (given
+    the DSM) at most :data:`MAX_HIDDEN_SHARE` of it hidden (-1: none), and every view's
+    projection of the vertices."""
     n_surf = int(tri.surface.max()) + 1 if len(tri.surface) else 0
     best = np.full(n_surf, -1)
     best_area = np.zeros(n_surf)
@@ -223,8 +306,21 @@ def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View]) -> tuple[
         off = np.bincount(wall_surface, weights=(~on[wall_faces].all(axis=1)).astype(np.float64), minlength=n_surf)
         frontal = world_area * pixels_per_unit(view, *centre) ** 2
         better = (off == 0) & (area > best_area) & (area >= MIN_WALL_VIEW * frontal)
+        if dsm is not None and better.any():
+            better &= _hidden_share(view, tri, walls & better[tri.surface], dsm, n_surf) <= MAX_HIDDEN_SHARE
         best[better], best_area[better] = k, area[better]
     return best, projections
+
+
+def _hidden_share(view: View, tri: _Triangles, walls: np.ndarray, dsm: Raster, n_surf: int) -> np.ndarray:
+    """(n_surf,) share of each wall surface's sample points the DSM hides from ``view``
+    (0 for the surfaces not among ``walls``)."""
+    points, surface = _wall_samples(tri, walls, dsm.resolution)
+    if not len(points):
+        return np.zeros(n_surf)
+    count = np.bincount(surface, minlength=n_surf)
+    blocked = np.bincount(surface, weights=hidden(view, points, dsm).astype(np.float64), minlength=n_surf)
+    return blocked / np.maximum(count, 1)
 
 
 def _low_walls(tri: _Triangles) -> np.ndarray:
@@ -265,7 +361,8 @@ def _parts(tri: _Triangles, texture: np.ndarray, uvs: dict[int, np.ndarray], n_t
 
 
 def texture_city(
-    city: CityModel, views: list[View], ortho: OrthoImage | None, *, max_size: int = MAX_TEXTURE_SIZE
+    city: CityModel, views: list[View], ortho: OrthoImage | None, *, dsm: Raster | None = None,
+    max_size: int = MAX_TEXTURE_SIZE,
 ) -> TexturedModel:
     """The city's highest-LoD solids, their roofs textured from ``ortho`` and their walls
     from ``views`` (see the module's description).
@@ -277,6 +374,9 @@ def texture_city(
         The stereo images and their projections (world CRS coordinates to pixels).
     ortho : OrthoImage, optional
         The true orthophoto; without it roofs are untextured.
+    dsm : Raster, optional
+        The surface walls are tested against for occlusion (see :func:`hidden`);
+        without it every front-facing view counts.
     max_size : int
         Longest side of a texture, pixels.
 
@@ -287,7 +387,7 @@ def texture_city(
     tri = _triangles(city)
     roofs = tri.kind == "RoofSurface"
     walls = tri.kind == "WallSurface"
-    best, projections = _best_views(tri, walls, views)
+    best, projections = _best_views(tri, walls, views, dsm)
     texture = np.full(len(tri.faces), -1, np.int64)  # of each triangle: an index into textures, -1 none
     textures: list[Texture] = []
     uvs: dict[int, np.ndarray] = {}  # per texture, (n, 2) coordinates of every vertex
