@@ -466,7 +466,9 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
         else:
             shared = np.bincount(s, weights=count, minlength=n)
             dist = ndimage.distance_transform_edt(~_piece_border(p) & (p > 0))
-            width = 2.0 * (np.asarray(ndimage.maximum(dist, p, np.arange(n))) + 0.5) * cell
+            deepest = np.zeros(n)  # per piece (0 where it has no cell, as ndimage.maximum gives)
+            np.maximum.at(deepest, p.ravel(), dist.ravel())  # ndimage.maximum sorts every cell: 10 x slower
+            width = 2.0 * (deepest + 0.5) * cell
             inner_share = np.bincount(p.ravel(), weights=inner.ravel(), minlength=n) / np.maximum(cells, 1)
             cut = np.zeros(n, bool)
             cut[s] = True
