@@ -379,6 +379,22 @@ def test_symmetric_eigenvalues_agree_with_lapack():
     assert np.allclose(got[-1], 4.0)
 
 
+def test_label_medians_are_ndimage_medians():
+    """One sort of the labelled cells gives scipy's per-label medians exactly, ties and
+    float32 included (every label holding cells, as detection's labels do)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.float32, np.float64):
+        for rounded in (False, True):
+            v = (rng.normal(size=(120, 160)) * 10).astype(dtype)
+            v = np.round(v) if rounded else v
+            labels = rng.integers(0, 31, size=v.shape)
+            expected = np.asarray(ndimage.median(v, labels, np.arange(1, 31)))
+            got = detect._label_medians(v, labels, 30)
+            assert got.dtype == expected.dtype and np.array_equal(got, expected)
+
+
 def test_classify_vegetation_synthetic():
     rng = np.random.default_rng(1)
     gx, gy = np.meshgrid(np.arange(0, 20, 0.3), np.arange(0, 20, 0.3))

@@ -500,6 +500,29 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
     return pieces
 
 
+def _label_medians(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """(n,) median of ``values`` over each label 1..n, in ``values``' dtype, equal to
+    ``ndimage.median``'s (0 for a label without cells, where that gives an arbitrary
+    value): one sort of the labelled cells instead of a median per label.
+
+    Parameters
+    ----------
+    values : (rows, cols) float
+    labels : (rows, cols) int
+    n : int
+    """
+    keep = labels > 0
+    v, lab = values[keep], labels[keep]
+    v = v[np.lexsort((v, lab))]
+    count = np.bincount(lab, minlength=n + 1)[1 : n + 1]
+    start = np.cumsum(count) - count
+    safe = np.minimum(start, max(len(v) - 1, 0))
+    if not len(v):
+        return np.zeros(n, values.dtype)
+    low, high = v[safe + (np.maximum(count, 1) - 1) // 2], v[safe + count // 2 - (count == 0)]
+    return np.where(count > 0, (low + high) / values.dtype.type(2), values.dtype.type(0))
+
+
 def _merge_small(labels: np.ndarray, n: int, min_cells: int) -> np.ndarray:
     """Parts smaller than ``min_cells`` join the touching part they share the longest border with."""
     for _ in range(20):
@@ -648,7 +671,6 @@ def find_blobs(
         )
     if n:
         labels, n = _consecutive(_merge_small(labels, n, min_cells))
-    index = np.arange(1, n + 1)
     cells = np.bincount(labels.ravel(), minlength=n + 1)[1:].astype(np.float64)
     smooth = smooth_all & mask
     inner = ndimage.grey_erosion(labels, size=3) == labels  # away from walls and the blob's border
@@ -657,9 +679,7 @@ def find_blobs(
     smooth_inner = np.bincount(labels[inner & smooth], minlength=n + 1)[1:].astype(np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
         smooth_share = np.where(inner_cells > 0, smooth_inner / inner_cells, 0.0)
-    height = (
-        np.asarray(ndimage.median(np.nan_to_num(ndsm.data), labels, index), np.float64) if n else np.zeros(0)
-    )
+    height = _label_medians(np.nan_to_num(ndsm.data), labels, n).astype(np.float64)
     vegetation = np.asarray(vegetation)
     if vegetation.dtype == bool:
         veg_share = np.full(n, np.nan)
