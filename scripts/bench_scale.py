@@ -98,7 +98,7 @@ def main() -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 2, 4, 8], help="k of the k x k surveys")
     parser.add_argument("--workers", type=int, default=2, help="workers of the scaling runs (default: %(default)s)")
     parser.add_argument("--compare-workers", type=int, default=4, metavar="K",
-                        help="also run the k x k survey with 1 worker, for the speed-up (0: not)")
+                        help="also run the k x k survey (one of --sizes) with 1 worker, for the speed-up (0: not)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="passed to recon3d run --set")
     _bench.add_quick(parser)
     args = parser.parse_args()
@@ -107,6 +107,10 @@ def main() -> int:
     if args.quick:
         args.sizes, args.compare_workers, fraction = [1, 2], 0, 0.1
         extra += ["--set", "tiles.size=32"]
+    if args.compare_workers and args.compare_workers not in args.sizes:
+        print(f"no 1-worker comparison: --compare-workers {args.compare_workers} is not among --sizes "
+              f"{' '.join(map(str, args.sizes))}")
+        args.compare_workers = 0
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for k in args.sizes:
