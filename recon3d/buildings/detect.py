@@ -513,14 +513,13 @@ def _label_medians(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray
     """
     keep = labels > 0
     v, lab = values[keep], labels[keep]
-    v = v[np.lexsort((v, lab))]
+    v = v[np.lexsort((v, lab))]  # by label, then by value
     count = np.bincount(lab, minlength=n + 1)[1 : n + 1]
-    start = np.cumsum(count) - count
-    safe = np.minimum(start, max(len(v) - 1, 0))
-    if not len(v):
-        return np.zeros(n, values.dtype)
-    low, high = v[safe + (np.maximum(count, 1) - 1) // 2], v[safe + count // 2 - (count == 0)]
-    return np.where(count > 0, (low + high) / values.dtype.type(2), values.dtype.type(0))
+    start = (np.cumsum(count) - count)[count > 0]
+    held = count[count > 0]
+    out = np.zeros(n, values.dtype)
+    out[count > 0] = (v[start + (held - 1) // 2] + v[start + held // 2]) / values.dtype.type(2)
+    return out
 
 
 def _merge_small(labels: np.ndarray, n: int, min_cells: int) -> np.ndarray:

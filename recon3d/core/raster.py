@@ -148,12 +148,12 @@ class Raster:
         i00 += c0
         down = (r0 < rows - 1) * row_step
         right = (c0 < cols - 1).astype(np.int64)
-        gather = flat.take
-        out = _corner(gather, i00, 1 - fr, 1 - fc)  # term by term, in the order of the formula
-        out += _corner(gather, i00 + right, 1 - fr, fc)
+        up, left = 1 - fr, 1 - fc
+        out = _corner(flat, i00, up, left)  # term by term, in the order of the formula
+        out += _corner(flat, i00 + right, up, fc)
         i00 += down
-        out += _corner(gather, i00, fr, 1 - fc)
-        out += _corner(gather, i00 + right, fr, fc)
+        out += _corner(flat, i00, fr, left)
+        out += _corner(flat, i00 + right, fr, fc)
         inside = (
             (x >= self.bounds[0]) & (x <= self.bounds[2]) & (y >= self.bounds[1]) & (y <= self.bounds[3])
         )
@@ -183,10 +183,10 @@ def _flat_cells(data: np.ndarray) -> tuple[int, np.ndarray]:
     return cols, data.ravel()
 
 
-def _corner(gather, index: np.ndarray, wr: np.ndarray, wc: np.ndarray) -> np.ndarray:
-    """One bilinear term, (n,) float64: the cells ``gather(index)`` of the flat indices
-    (cast per cell, not the whole grid) times ``wr`` times ``wc``, in that order."""
-    term = gather(index).astype(np.float64)
+def _corner(flat: np.ndarray, index: np.ndarray, wr: np.ndarray, wc: np.ndarray) -> np.ndarray:
+    """One bilinear term, (n,) float64: the cells ``flat[index]`` (cast per cell, not the
+    whole grid) times ``wr`` times ``wc``, in that order."""
+    term = flat.take(index).astype(np.float64)
     term *= wr
     term *= wc
     return term

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from recon3d.buildings.vegetation import vegetation_index
 from recon3d.core.geo import Units
-from recon3d.core.pointcloud import ASPRS, PointCloud
+from recon3d.core.pointcloud import ASPRS, PointCloud, column_bounds
 
 __all__ = [
     "ReferenceGrid",
@@ -266,7 +266,7 @@ def evaluate_against_classes(
     if not len(idx):
         raise ValueError("evaluate_against_classes: the cloud has no surface point")
     xy = cloud.xyz[idx, :2]
-    grid = ReferenceGrid.over(xy.min(axis=0), xy.max(axis=0), cell)
+    grid = ReferenceGrid.over(*column_bounds(xy), cell)
     gx, gy = grid.centres()
     valid, nearest = nearest_point(xy, np.column_stack([gx.ravel(), gy.ravel()]), max_distance)
     ref = np.zeros(valid.shape, bool)

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from recon3d.core.pointcloud import PointCloud
+from recon3d.core.pointcloud import PointCloud, column_bounds
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +73,8 @@ def isolated(xyz: np.ndarray, voxel: float, min_neighbours: int) -> np.ndarray:
     10 million points of a 6-image block, for the same DSMs on the survey family (within
     0.01-0.03 m of tolerant RMS either way) and 0.04 m less bias on the demo city.
     """
-    v = np.floor((xyz - xyz.min(axis=0)) / voxel).astype(np.int64) + 1
-    dims = v.max(axis=0) + 2
+    v = np.floor((xyz - column_bounds(xyz)[0]) / voxel).astype(np.int64) + 1
+    dims = column_bounds(v)[1] + 2
     key = (v[:, 0] * dims[1] + v[:, 1]) * dims[2] + v[:, 2]
     cells, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     total = np.zeros(len(cells), np.int64)
@@ -90,8 +90,9 @@ def isolated(xyz: np.ndarray, voxel: float, min_neighbours: int) -> np.ndarray:
 def _best_pair_per_cell(clouds: list[PointCloud], cell: float) -> list[PointCloud]:
     """Each cloud cut to the cells where its mean quality is the highest of all clouds'
     (ties: the first cloud). Sparse: memory grows with the points, not the extent."""
-    lo = np.min([c.xyz[:, :2].min(axis=0) for c in clouds], axis=0)
-    hi = np.max([c.xyz[:, :2].max(axis=0) for c in clouds], axis=0)
+    bounds = [column_bounds(c.xyz[:, :2]) for c in clouds]
+    lo = np.min([b[0] for b in bounds], axis=0)
+    hi = np.max([b[1] for b in bounds], axis=0)
     ny = int(np.floor((hi[1] - lo[1]) / cell)) + 1
     flat = []
     stats = []  # per cloud: its cells, their mean quality

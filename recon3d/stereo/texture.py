@@ -294,6 +294,7 @@ def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View],
     corners = tri.world[wall_faces]
     world_area = np.bincount(wall_surface, minlength=n_surf, weights=0.5 * np.linalg.norm(
         np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1))
+    samples = _wall_samples(tri, walls, dsm.resolution) if dsm is not None else None
     for k, view in enumerate(views):
         col, row = (np.asarray(a, np.float64) for a in view.project(tri.world[:, 0], tri.world[:, 1], tri.world[:, 2]))
         projections.append((col, row))
@@ -306,20 +307,20 @@ def _best_views(tri: _Triangles, walls: np.ndarray, views: list[View],
         off = np.bincount(wall_surface, weights=(~on[wall_faces].all(axis=1)).astype(np.float64), minlength=n_surf)
         frontal = world_area * pixels_per_unit(view, *centre) ** 2
         better = (off == 0) & (area > best_area) & (area >= MIN_WALL_VIEW * frontal)
-        if dsm is not None and better.any():
-            better &= _hidden_share(view, tri, walls & better[tri.surface], dsm, n_surf) <= MAX_HIDDEN_SHARE
+        if samples is not None and better.any():
+            better &= _hidden_share(view, *samples, better, dsm) <= MAX_HIDDEN_SHARE
         best[better], best_area[better] = k, area[better]
     return best, projections
 
 
-def _hidden_share(view: View, tri: _Triangles, walls: np.ndarray, dsm: Raster, n_surf: int) -> np.ndarray:
-    """(n_surf,) share of each wall surface's sample points the DSM hides from ``view``
-    (0 for the surfaces not among ``walls``)."""
-    points, surface = _wall_samples(tri, walls, dsm.resolution)
-    if not len(points):
-        return np.zeros(n_surf)
-    count = np.bincount(surface, minlength=n_surf)
-    blocked = np.bincount(surface, weights=hidden(view, points, dsm).astype(np.float64), minlength=n_surf)
+def _hidden_share(view: View, points: np.ndarray, surface: np.ndarray, candidates: np.ndarray,
+                  dsm: Raster) -> np.ndarray:
+    """(n_surf,) share of each candidate wall surface's sample points (:func:`_wall_samples`)
+    the DSM hides from ``view``; 0 for the other surfaces, whose rays are not followed."""
+    pick = candidates[surface]
+    n_surf = len(candidates)
+    count = np.bincount(surface[pick], minlength=n_surf)
+    blocked = np.bincount(surface[pick], weights=hidden(view, points[pick], dsm).astype(np.float64), minlength=n_surf)
     return blocked / np.maximum(count, 1)
 
 
