@@ -77,6 +77,14 @@ def peer_missing(peer: str, install: str, quick: bool) -> None:
     print(f"note: {peer} is not installed ({install}); skipped in --quick, recon3d's side only")
 
 
+def peer_failed(peer: str, why: str, quick: bool) -> None:
+    """A peer that is installed but failed: a note in ``--quick`` (its column left out), else :func:`refuse`."""
+    why = why.strip().splitlines()[-1] if why.strip() else "no message"
+    if not quick:
+        refuse(f"{peer} failed: {why}")
+    print(f"note: {peer} failed ({why}); left out in --quick, recon3d's side only")
+
+
 def ratio(a, b) -> float:
     """``a / b``; NaN when either is missing, infinite for ``b == 0 < a``."""
     if not isinstance(a, int | float) or not isinstance(b, int | float) or math.isnan(a) or math.isnan(b):

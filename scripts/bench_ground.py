@@ -56,6 +56,7 @@ import json
 import math
 import os
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -231,7 +232,6 @@ def run_pdal_smrf(path: Path, repeat: int = 1) -> tuple[np.ndarray, float]:
     filter and write of an uncompressed LAS the labels are read back from; points keep
     their order through these stages).
     """
-    import subprocess
     import tempfile
 
     import laspy
@@ -259,7 +259,7 @@ def have_pdal() -> bool:
     return shutil.which("pdal") is not None
 
 
-def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bool = False) -> dict:
+def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bool = False, quick: bool = False) -> dict:
     cloud, units = load(path)
     if cloud.classification is None or not np.any(cloud.classification == ASPRS.GROUND):
         raise InputError(f"{path}: no provider ground (class 2) to score against")
@@ -288,7 +288,12 @@ def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bo
     }
 
     if pdal:
-        is_ground, seconds = run_pdal_smrf(path, repeat)
+        try:
+            is_ground, seconds = run_pdal_smrf(path, repeat)
+        except subprocess.CalledProcessError as exc:
+            _bench.peer_failed("PDAL", exc.stderr.decode(errors="replace"), quick)
+            pdal = False
+    if pdal:
         if len(is_ground) != len(cloud):
             raise SystemExit(f"{path.name}: PDAL returned {len(is_ground)} points for {len(cloud)}")
         record["methods"]["pdal_smrf"] = ref.score(is_ground, seconds) | {"params": {"filters.smrf": "defaults"}}
@@ -404,7 +409,7 @@ def main() -> None:
     records = []
     for path in files:
         t = time.perf_counter()
-        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle and csf, csf, pdal)
+        rec = bench_file(path, max(args.repeat, 1), not args.no_oracle and csf, csf, pdal, args.quick)
         rec["wall_seconds"] = time.perf_counter() - t
         print_record(rec)
         records.append(rec)

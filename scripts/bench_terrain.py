@@ -183,12 +183,20 @@ def pdal_cmd(path: Path, case: str, out: Path, resolution: float) -> list[str]:
 # -- driver --------------------------------------------------------------------------
 
 
-def measure(contenders: dict, repeat: int) -> dict:
-    """Median wall time and peak RSS of each contender, their runs alternating."""
+def measure(contenders: dict, repeat: int, quick: bool) -> dict:
+    """Median wall time and peak RSS of each contender, their runs alternating; a failed peer left out."""
     runs = {name: [] for name in contenders}
     for _ in range(repeat):
         for name, (cmd, env) in contenders.items():
-            runs[name].append(run_process(cmd, env))
+            if name not in runs:
+                continue
+            try:
+                runs[name].append(run_process(cmd, env))
+            except RuntimeError as exc:
+                if name.startswith("recon3d"):
+                    raise
+                _bench.peer_failed(name, str(exc), quick)
+                del runs[name]
     out = {}
     for name, rs in runs.items():
         out[name] = {"wall_s": statistics.median(r[0] for r in rs), "peak_rss_mb": max(r[1] for r in rs)}
@@ -256,7 +264,7 @@ def main() -> None:
                     contenders[name] = recon3d_cmd(source, path, case, folder, crs)
             if pdal:
                 contenders["PDAL"] = (pdal_cmd(path, case, tmp, resolution), None)
-            figures = measure(contenders, args.repeat)
+            figures = measure(contenders, args.repeat, args.quick)
             record["cases"][case] = {"points": n, "figures": figures}
             print_case(case, n, figures)
     if args.json:
