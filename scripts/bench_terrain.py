@@ -20,7 +20,7 @@ keeping the median wall time and the peak RSS (``wait4``):
 
 PDAL is a peer only, not a dependency: conda-forge's ``pdal``, Ubuntu's package, or on
 Debian 12 and later (which do not package it) ``sudo sh scripts/pdal_chroot.sh``
-(Debian 11's PDAL 2.2.0 in a chroot). Without it a full run refuses unless
+(Debian 11's PDAL 2.2.0 in a folder of its own). Without it a full run refuses unless
 ``--no-pdal`` is given; ``--quick`` (one copy of the strip, one run) notes it and goes on.
 
     .venv/bin/python scripts/bench_terrain.py [--tiles 3 1] [--repeat 3] [--baseline DIR] [--no-pdal] [--quick]
