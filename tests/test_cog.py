@@ -98,3 +98,24 @@ def test_block_size_and_overviews():
     assert block_size((3000, 2000)) == 256 and overview_factors((3000, 2000), 256) == [2, 4, 8, 16]
     assert block_size((10000, 5000)) == 512
     assert overview_factors((100, 100), 128) == []
+
+
+def test_read_for_display_averages_the_valid_cells(tmp_path):
+    from recon3d.io.geotiff import read_raster, write_raster
+
+    rng = np.random.default_rng(3)
+    data = rng.normal(20, 5, (900, 2400)).astype(np.float32)
+    data[100:400, 300:900] = np.nan  # a gap wider than a coarse cell
+    raster = Raster(data, Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0), pyproj.CRS.from_epsg(2154))
+    write_raster(raster, tmp_path / "dsm.tif")
+    full = read_raster(tmp_path / "dsm.tif")
+    small = read_raster(tmp_path / "dsm.tif", max_side=600)
+    assert small.shape == (225, 600)  # a factor of 4 on both axes
+    assert small.transform == Affine(2.0, 0, 1000.0, 0, -2.0, 2000.0)  # the same extent
+    blocks = data.reshape(225, 4, 600, 4)
+    count = np.isfinite(blocks).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore"):
+        want = np.nansum(blocks, axis=(1, 3)) / count
+    assert np.array_equal(np.isnan(small.data), np.isnan(want))  # NaN only where every cell is
+    np.testing.assert_allclose(small.data, want, atol=1e-3)
+    assert read_raster(tmp_path / "dsm.tif", max_side=5000).shape == full.shape == data.shape

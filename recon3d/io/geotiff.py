@@ -18,6 +18,7 @@ import numpy as np
 import pyproj
 import rasterio
 import rasterio.shutil
+from affine import Affine
 from rasterio.enums import Resampling
 
 from recon3d.core.geo import to_rasterio_crs
@@ -161,14 +162,24 @@ def write_image(data: np.ndarray, grid: Raster, path: str | Path, *, mask: np.nd
                                  photometric="RGB" if bands == 3 else "MINISBLACK", **THREADS)
 
 
-def read_raster(path: str | Path) -> Raster:
-    """Read band 1 of a raster; its nodata value becomes NaN."""
+def read_raster(path: str | Path, *, max_side: int | None = None) -> Raster:
+    """Read band 1 of a raster; its nodata value becomes NaN.
+
+    With ``max_side``, a raster with more rows or columns than that is read on a grid
+    coarser by a whole factor, at most that many cells on a side, each coarse cell the
+    average of the valid cells it covers (from a Cloud Optimized GeoTIFF's overviews
+    where they fit): a map for the screen, in memory bounded by the screen, not the area.
+    """
     path = require_file(path, "raster")
     try:
         with rasterio.open(path) as src:
-            data = src.read(1, masked=True).astype(np.float32).filled(np.nan)
+            factor = max(1, -(-max(src.width, src.height) // max_side)) if max_side else 1
+            shape = (max(1, -(-src.height // factor)), max(1, -(-src.width // factor)))
+            data = src.read(1, masked=True, out_shape=shape, resampling=Resampling.average)
+            data = data.astype(np.float32).filled(np.nan)
             crs = pyproj.CRS.from_wkt(src.crs.to_wkt()) if src.crs else None
-            return Raster(data, src.transform, crs, dict(src.tags()))
+            transform = src.transform @ Affine.scale(src.width / shape[1], src.height / shape[0])
+            return Raster(data, transform, crs, dict(src.tags()))
     except rasterio.errors.RasterioIOError as exc:
         raise InputError(f"{path}: cannot read raster ({exc})") from None
 

@@ -434,7 +434,7 @@ def _metres_per_unit(run: dict) -> tuple[float, float]:
 def _raster_figure(path: Path, run: dict, title: str, cmap: str, caption: str, *, from_zero: bool = False) -> str:
     """A map of a height raster, tinted over its 1-99 % range, or from 0 to its 99.5 %
     height (at least 1 m) with ``from_zero``."""
-    r = read_raster(path)
+    r = read_raster(path, max_side=2 * maps.MAP_SIZE)  # twice the display size: sharp on high-DPI screens
     h_unit, v_unit = _metres_per_unit(run)
     z = r.data.astype(float) * v_unit  # heights shown in metres
     if not np.isfinite(z).any():
@@ -465,8 +465,8 @@ SURFACES = (
     ("ndsm", "height above ground (m)", "height", "nDSM: DSM minus DTM. "),
 )
 
-#: Maps drawn at once. Each holds about ten float64 copies of its raster while drawn
-#: (340 MB for a 4 M-cell DSM): four at once made the report the peak of a whole run.
+#: Maps drawn at once. Each holds about ten float64 copies of its raster while drawn,
+#: read at most twice the display size (2 MAP_SIZE cells a side, up to 240 MB).
 FIGURE_THREADS = 2
 
 
@@ -618,7 +618,7 @@ def _building_map(out_dir: Path, run: dict, rows: list[dict]) -> str:
     dsm_path = out_dir / "dsm.tif"
     if not rows or not dsm_path.exists():
         return ""
-    r = read_raster(dsm_path)
+    r = read_raster(dsm_path, max_side=2 * maps.MAP_SIZE)
     h_unit, v_unit = _metres_per_unit(run)
     bounds = _bounds(r)
     frame = maps.MapFrame.fit(bounds)

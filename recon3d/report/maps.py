@@ -35,6 +35,10 @@ NODATA_NOTE = "no data (NaN): transparent, shown as grey hatching"
 MARGIN = {"left": 78, "right": 118, "top": 14, "bottom": 48}
 
 
+#: Largest width and height of a map on the page (display pixels).
+MAP_SIZE = 860
+
+
 @dataclass(frozen=True)
 class MapFrame:
     """Where a raster's extent lands on the page.
@@ -50,7 +54,8 @@ class MapFrame:
     height: int
 
     @classmethod
-    def fit(cls, bounds: tuple[float, float, float, float], max_width: int = 860, max_height: int = 860) -> MapFrame:
+    def fit(cls, bounds: tuple[float, float, float, float], max_width: int = MAP_SIZE,
+            max_height: int = MAP_SIZE) -> MapFrame:
         """The frame showing ``bounds`` (xmin, ymin, xmax, ymax) as large as fits."""
         xmin, ymin, xmax, ymax = bounds
         scale = min(max_width / max(xmax - xmin, 1e-9), max_height / max(ymax - ymin, 1e-9))
