@@ -177,3 +177,23 @@ def test_l_shaped_gable_house_stays_one_building(pitch):
     assert not cut.any()
     (polygon,) = _detect(ndsm)
     assert _best_iou([house], [polygon])[0] >= 0.85
+
+
+@pytest.mark.parametrize("shift", detect.NEIGHBOURS)
+def test_neighbour_views_pair_each_cell_with_the_one_behind(shift):
+    a = np.arange(5 * 7).reshape(5, 7)
+    here, there = detect._neighbours(shift)
+    padded = np.pad(a, 1, constant_values=-1)
+    r, c = shift
+    behind = padded[1 - r : 6 - r, 1 - c : 8 - c]  # the cell (r, c) before each, -1 outside
+    assert np.array_equal(a[there], behind[here])
+    assert (behind == -1).sum() == a.size - a[here].size  # every cell with a neighbour is paired
+
+
+def test_distance_is_the_euclidean_transform():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    mask = rng.random((80, 120)) > 0.03
+    mask[:, :4] = True  # open to the grid's edge
+    np.testing.assert_allclose(detect._distance(mask), ndimage.distance_transform_edt(mask), atol=1e-5)

@@ -30,6 +30,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import rasterio.features
 import shapely
@@ -215,26 +216,37 @@ def step_strength(height: np.ndarray, labels: np.ndarray, *, min_step: float) ->
     for hh, ll, oo in ((h, lab, out), (h.T, lab.T, out.T)):  # along rows, then along columns
         if hh.shape[1] < 2:
             continue
-        # pad two cells of "no part" so the slopes behind each cell of an edge can be read
-        hp = np.pad(hh, ((0, 0), (2, 2)))
-        lp = np.pad(ll, ((0, 0), (2, 2)))
-        a, b = np.s_[:, 2:-3], np.s_[:, 3:-2]  # the two cells of each edge, a left of b
-        same = (lp[a] == lp[b]) & (lp[a] > 0)
-        dz = hp[b] - hp[a]
-        misfit = np.abs(dz)
-        # the slope behind a (from its left neighbours) and behind b (to its right ones)
-        behind = (
-            (hp[a] - hp[:, 1:-4], lp[:, 1:-4], (hp[a] - hp[:, 0:-5]) / 2, lp[:, 0:-5], lp[a]),
-            (hp[:, 4:-1] - hp[b], lp[:, 4:-1], (hp[:, 5:] - hp[b]) / 2, lp[:, 5:], lp[b]),
-        )
-        for s1, l1, s2, l2, own in behind:
-            one = l1 == own
-            misfit = np.where(one, np.minimum(misfit, np.abs(dz - s1)), misfit)
-            misfit = np.where(one & (l2 == own), np.minimum(misfit, np.abs(dz - s2)), misfit)
-        misfit = np.where(same & (misfit > min_step), misfit, 0.0)
-        oo[:, :-1] = np.maximum(oo[:, :-1], misfit)
-        oo[:, 1:] = np.maximum(oo[:, 1:], misfit)
+        for start in range(0, hh.shape[0], STRIP_ROWS):  # rows are independent: memory of a strip
+            rows = slice(start, start + STRIP_ROWS)
+            _row_steps(hh[rows], ll[rows], oo[rows], min_step)
     return out.astype(np.float32)
+
+
+#: Rows :func:`step_strength` works on at a time (its temporaries are a dozen strips).
+STRIP_ROWS = 256
+
+
+def _row_steps(hh: np.ndarray, ll: np.ndarray, oo: np.ndarray, min_step: float) -> None:
+    """:func:`step_strength` along the rows of a strip, raising ``oo`` (a view) in place."""
+    # pad two cells of "no part" so the slopes behind each cell of an edge can be read
+    hp = np.pad(hh, ((0, 0), (2, 2)))
+    lp = np.pad(ll, ((0, 0), (2, 2)))
+    a, b = np.s_[:, 2:-3], np.s_[:, 3:-2]  # the two cells of each edge, a left of b
+    same = (lp[a] == lp[b]) & (lp[a] > 0)
+    dz = hp[b] - hp[a]
+    misfit = np.abs(dz)
+    # the slope behind a (from its left neighbours) and behind b (to its right ones)
+    behind = (
+        (hp[a] - hp[:, 1:-4], lp[:, 1:-4], (hp[a] - hp[:, 0:-5]) / 2, lp[:, 0:-5], lp[a]),
+        (hp[:, 4:-1] - hp[b], lp[:, 4:-1], (hp[:, 5:] - hp[b]) / 2, lp[:, 5:], lp[b]),
+    )
+    for s1, l1, s2, l2, own in behind:
+        one = l1 == own
+        misfit = np.where(one, np.minimum(misfit, np.abs(dz - s1)), misfit)
+        misfit = np.where(one & (l2 == own), np.minimum(misfit, np.abs(dz - s2)), misfit)
+    misfit = np.where(same & (misfit > min_step), misfit, 0.0)
+    oo[:, :-1] = np.maximum(oo[:, :-1], misfit)
+    oo[:, 1:] = np.maximum(oo[:, 1:], misfit)
 
 
 def valley_depth(height: np.ndarray, labels: np.ndarray, *, reach: int, min_drop: float) -> np.ndarray:
@@ -325,7 +337,7 @@ def split_at_steps(
         1..n, the parts not cut keep their cells.
     n : int
     """
-    lab = np.asarray(labels).astype(np.int64)
+    lab = np.asarray(labels).astype(np.int32)  # int32 labels: every whole-area copy below at half the memory
     strength = step_strength(height, lab, min_step=min_step)
     level = strength > 0  # cells of a step, which go with the side they are level with
     if valley_drop is not None:
@@ -335,7 +347,7 @@ def split_at_steps(
     if not step.any():
         return _consecutive(lab)
     edge = _piece_border(lab)
-    inner = (lab > 0) & (ndimage.distance_transform_edt(~edge) * cell > border)
+    inner = (lab > 0) & (_distance(~edge) * cell > border)
     core = inner & ~ndimage.binary_dilation(step, structure=np.ones((3, 3), bool))
     cores, m = ndimage.label(core)
     min_core = max(1, int(round(min_area / 4 / cell**2)))
@@ -358,28 +370,26 @@ def split_at_steps(
     cost[_piece_border(sub, touching=True)] = 65534
     cost[~cut] = 65535
     markers = np.where(cut, cores[box], 0).astype(np.int32)
-    flooded = ndimage.watershed_ift(cost, markers).astype(np.int64)
+    flooded = ndimage.watershed_ift(cost, markers)  # int32, as the markers
     # cells of a part's rim taken by a neighbouring part's core take a neighbour's core of their own part
     wrong = cut & (part_of[flooded] != sub)
     for _ in range(4):
         if not wrong.any():
             break
-        for shift in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            nf, nw, ns = (_shifted(a, shift) for a in (flooded, wrong, sub))
-            take = wrong & ~nw & (ns == sub)
-            flooded[take] = nf[take]
-            wrong &= ~take
+        for here, there in map(_neighbours, NEIGHBOURS):
+            take = wrong[here] & ~wrong[there] & (sub[there] == sub[here])
+            flooded[here][take] = flooded[there][take]
+            wrong[here][take] = False
     # the flood splits a step anywhere between its two sides: a step cell goes with the
     # neighbour it is level with (the wall stands between the two cells of a step edge)
     hb = np.nan_to_num(np.asarray(height, np.float64)[box])
     on_step = cut & level[box] & ~wrong
     for _ in range(2):
         best, choice = np.full(hb.shape, np.inf), flooded.copy()
-        for shift in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            nh, nf, ns, nw = (_shifted(a, shift) for a in (hb, flooded, sub, wrong))
-            dz = np.where((ns == sub) & ~nw, np.abs(hb - nh), np.inf)
-            better = on_step & (dz < best)
-            best[better], choice[better] = dz[better], nf[better]
+        for here, there in map(_neighbours, NEIGHBOURS):
+            dz = np.where((sub[there] == sub[here]) & ~wrong[there], np.abs(hb[here] - hb[there]), np.inf)
+            better = on_step[here] & (dz < best[here])
+            best[here][better], choice[here][better] = dz[better], flooded[there][better]
         flooded = choice
     # pieces: a core's flood inside its part; parts not cut stay whole
     offset = int(lab.max()) + 1
@@ -391,11 +401,25 @@ def split_at_steps(
     return _consecutive(out)
 
 
-def _shifted(a: np.ndarray, shift: tuple[int, int]) -> np.ndarray:
-    """``a`` moved by (rows, cols) of one cell at most; cells moved in from outside are 0."""
-    p = np.pad(a, 1)
-    r, c = shift
-    return p[1 - r : p.shape[0] - 1 - r, 1 - c : p.shape[1] - 1 - c]
+#: The four neighbours of a cell, as (rows, cols) shifts, in the order they are tried.
+NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
+
+
+def _neighbours(shift: tuple[int, int]) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Views pairing each cell with its neighbour ``shift`` cells back: ``a[here][k]`` and
+    ``a[there][k]`` are a cell and the cell (rows, cols) before it, for every cell that has
+    one (no padded copy of the grid)."""
+    def axis(k: int) -> tuple[slice, slice]:
+        return slice(max(k, 0), k if k < 0 else None), slice(max(-k, 0), -k if k > 0 else None)
+
+    (r_here, r_there), (c_here, c_there) = axis(shift[0]), axis(shift[1])
+    return (r_here, c_here), (r_there, c_there)
+
+
+def _distance(mask: np.ndarray) -> np.ndarray:
+    """(rows, cols) float64 Euclidean distance (cells) of each True cell to the nearest
+    False one: OpenCV's exact transform, in a quarter of scipy's working memory."""
+    return cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
 
 
 def _consecutive(labels: np.ndarray) -> tuple[np.ndarray, int]:
@@ -429,26 +453,25 @@ def _piece_border(labels: np.ndarray, *, touching: bool = False) -> np.ndarray:
 def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_shared, min_evidence):
     """Rejoin the pieces of a step cut that are no buildings (:func:`split_at_steps`)."""
     for _ in range(20):
-        ids, p = _unique_labels(pieces)
+        ids, p = _unique_labels(pieces, np.int32)  # int32: half the memory of the whole-area grids
         n = len(ids)
         part_of = np.zeros(n, np.int64)
         part_of[p.ravel()] = parts.ravel()
         cells = np.bincount(p.ravel(), minlength=n)
-        # the border of every piece, and the share it has with each other piece of its part
-        la, lb, ea, eb = [], [], [], []
+        # the border of every piece (pairs of 4-neighbours in different pieces, kept
+        # alone: a few percent of the cells), and the share it has with each other piece of its part
+        la, lb, on_step = [], [], []
         for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
-            la.append(p[a].ravel())
-            lb.append(p[b].ravel())
-            ea.append(step[a].ravel())
-            eb.append(step[b].ravel())
-        la, lb = np.concatenate(la), np.concatenate(lb)
-        on_step = np.concatenate(ea) | np.concatenate(eb)
-        diff = la != lb
-        perimeter = np.bincount(np.r_[la[diff], lb[diff]], minlength=n).astype(np.float64)
+            diff = p[a] != p[b]
+            la.append(p[a][diff].astype(np.int64))
+            lb.append(p[b][diff].astype(np.int64))
+            on_step.append(step[a][diff] | step[b][diff])
+        la, lb, on_step = np.concatenate(la), np.concatenate(lb), np.concatenate(on_step)
+        perimeter = np.bincount(np.r_[la, lb], minlength=n).astype(np.float64)
         # the grid's edge is a border too
         for line in (p[0], p[-1], p[:, 0], p[:, -1]):
             perimeter += np.bincount(line, minlength=n)
-        pair = diff & (part_of[la] == part_of[lb]) & (part_of[la] > 0)
+        pair = (part_of[la] == part_of[lb]) & (part_of[la] > 0)
         src, dst, ev = np.r_[la[pair], lb[pair]], np.r_[lb[pair], la[pair]], np.r_[on_step[pair], on_step[pair]]
         if not len(src):
             break
@@ -465,7 +488,7 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
             mapping = lowest[comp]
         else:
             shared = np.bincount(s, weights=count, minlength=n)
-            dist = ndimage.distance_transform_edt(~_piece_border(p) & (p > 0))
+            dist = _distance(~_piece_border(p) & (p > 0))
             deepest = np.zeros(n)  # per piece (0 where it has no cell, as ndimage.maximum gives)
             np.maximum.at(deepest, p.ravel(), dist.ravel())  # ndimage.maximum sorts every cell: 10 x slower
             width = 2.0 * (deepest + 0.5) * cell
