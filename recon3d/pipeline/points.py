@@ -360,25 +360,43 @@ class LasStore:
         y1 = transform.f + rows.start * transform.e
         y0 = transform.f + rows.stop * transform.e
         b = self.bucket
-        parts = []
+        loaded, picks, rows_in, cols_in, offset = [], [], [], [], 0
         for bx in range(math.floor(x0 / b) - 1, math.floor(x1 / b) + 1):
             for by in range(math.floor(y0 / b) - 1, math.floor(y1 / b) + 1):
                 path = self._path(bx, by)
                 if path.exists():
                     rec = self._load(path)
-                    row, col = cell_rowcol(np.column_stack([rec["x"], rec["y"]]), transform)
-                    keep = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
-                    if keep.all():  # a bucket inside the window: no copy
-                        parts.append((rec, row, col))
-                    elif keep.any():
-                        parts.append((rec[keep], row[keep], col[keep]))
-        if not parts:
-            rec, row, col = np.zeros(0, self.dtype), np.zeros(0, np.int64), np.zeros(0, np.int64)
-        else:
-            rec, row, col = (np.concatenate(p) for p in zip(*parts, strict=True))
-        sort = np.argsort(rec["order"], kind="stable")
-        rec, row, col = rec[sort], row[sort], col[sort]
-        return TilePoints(self._cloud(rec), np.ascontiguousarray(rec["order"]), row, col)
+                    row, col = cell_rowcol(_xy(rec), transform)
+                    pick = np.flatnonzero((row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop))
+                    if len(pick):
+                        loaded.append(rec)
+                        picks.append(pick + offset)
+                        rows_in.append(row[pick])
+                        cols_in.append(col[pick])
+                        offset += len(rec)
+        if not loaded:
+            empty = np.zeros(0, np.int64)
+            return TilePoints(self._cloud(np.zeros(0, self.dtype)), empty, empty, empty.copy())
+        # one gather per field, straight into survey order (no copy of whole records)
+        pick = np.concatenate(picks)
+        order = np.concatenate([r["order"] for r in loaded])[pick]
+        sort = np.argsort(order, kind="stable")
+        take = pick[sort]
+
+        def field(name: str) -> np.ndarray:
+            return np.concatenate([r[name] for r in loaded])[take]
+
+        xyz = np.empty((len(take), 3))
+        for axis, name in enumerate("xyz"):
+            xyz[:, axis] = field(name)
+        names = [n for n in self.dtype.names if n not in ("x", "y", "z", "order")]
+        cloud = PointCloud(xyz, {n: field(n) for n in names}, self.crs)
+        return TilePoints(cloud, order[sort], np.concatenate(rows_in)[sort], np.concatenate(cols_in)[sort])
+
+
+def _xy(rec: np.ndarray) -> np.ndarray:
+    """(n, 2) float64 view of the x and y of bucket records (their first two fields)."""
+    return np.ndarray((len(rec), 2), np.float64, rec, 0, (rec.itemsize, 8))
 
 
 def _record_dtype(path: Path, names: list[str]) -> np.dtype:
