@@ -159,7 +159,9 @@ def nearest_neighbours(
     them is in does not depend on the tree's traversal.
     """
     n = len(xyz)
-    tree = cKDTree(xyz)
+    # an unbalanced tree (split at the midpoint, not the median) builds and answers
+    # about a fifth faster on survey points; the answers do not depend on the tree
+    tree = cKDTree(xyz, balanced_tree=False)
     q = min(k + 1, n)
     dist, nb = tree.query(xyz, k=q, distance_upper_bound=radius, workers=workers)
     dist, nb = dist.reshape(n, q), nb.reshape(n, q)
