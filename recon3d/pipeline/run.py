@@ -47,7 +47,7 @@ from recon3d.errors import InputError
 from recon3d.io.las import las_tiles
 from recon3d.pipeline import inputs as inputs_mod
 from recon3d.pipeline import output, passes
-from recon3d.pipeline.executor import Executor, connect, default_workers
+from recon3d.pipeline.executor import Executor, connect, default_workers, release_memory
 from recon3d.pipeline.inputs import Inputs, Source
 from recon3d.pipeline.points import MemoryStore, cell_rowcol
 from recon3d.pipeline.tiling import BLOCK, Tile, plan_tiles
@@ -371,6 +371,7 @@ def run(
                 r.progress = lambda detail, n=name, i=index: progress(f"{n} {detail}", i, len(STAGES))
             start = time.perf_counter()
             stage(r)
+            release_memory()
             r.timings[name] = round(time.perf_counter() - start, 3)
             log.info("stage %s done in %.2f s", name, r.timings[name])
         result = _result(r)
