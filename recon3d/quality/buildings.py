@@ -312,20 +312,29 @@ def nearest_point(xy: np.ndarray, centres: np.ndarray, max_distance: float,
     nearest : (m,) int
         Index into ``xy`` (meaningless where not valid).
     """
+    valid, nearest = np.zeros(len(centres), bool), np.zeros(len(centres), np.int64)
     if not len(xy):
-        return np.zeros(len(centres), bool), np.zeros(len(centres), np.int64)
+        return valid, nearest
     k = min(2, len(xy))
-    dist, nb = cKDTree(xy).query(centres, k=k, distance_upper_bound=max_distance, workers=-1)
-    dist, nb = dist.reshape(len(centres), k), nb.reshape(len(centres), k)
-    valid = np.isfinite(dist[:, 0])
-    nearest = nb[:, 0].copy()
-    if k == 2:
-        rank = np.arange(len(xy)) if order is None else np.asarray(order)
-        tie = np.isfinite(dist[:, 1]) & (dist[:, 1] == dist[:, 0])
-        second = nb[tie, 1]
-        swap = rank[second] < rank[nearest[tie]]
-        nearest[np.flatnonzero(tie)[swap]] = second[swap]
-    return valid, np.where(valid, nearest, 0)
+    tree = cKDTree(xy)
+    rank = np.arange(len(xy)) if order is None else np.asarray(order)
+    for start in range(0, len(centres), QUERY_CHUNK):  # memory of a chunk, not of the tile's cells
+        part = slice(start, start + QUERY_CHUNK)
+        dist, nb = tree.query(centres[part], k=k, distance_upper_bound=max_distance, workers=-1)
+        dist, nb = dist.reshape(-1, k), nb.reshape(-1, k)
+        near = nb[:, 0].copy()
+        if k == 2:
+            tie = np.isfinite(dist[:, 1]) & (dist[:, 1] == dist[:, 0])
+            second = nb[tie, 1]
+            swap = rank[second] < rank[near[tie]]
+            near[np.flatnonzero(tie)[swap]] = second[swap]
+        valid[part] = np.isfinite(dist[:, 0])
+        nearest[part] = np.where(valid[part], near, 0)
+    return valid, nearest
+
+
+#: Centres :func:`nearest_point` looks up at a time.
+QUERY_CHUNK = 1 << 18
 
 
 def score_against_reference(
