@@ -167,8 +167,8 @@ def release_memory() -> None:
 
     A large array freed in the middle of the heap stays in this process's resident
     memory until something reuses it: a worker that has finished a tile would go on
-    holding its peak while the next pass, or the main process, needs the memory. Free
-    elsewhere (other C libraries) and a few milliseconds per call.
+    holding its peak while the next pass, or the main process, needs the memory. A few
+    milliseconds per call; nothing where the C library is not glibc.
     """
     if _LIBC is not None:
         _LIBC.malloc_trim(0)

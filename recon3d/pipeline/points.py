@@ -367,7 +367,8 @@ class LasStore:
                 if path.exists():
                     rec = self._load(path)
                     row, col = cell_rowcol(_xy(rec), transform)
-                    pick = np.flatnonzero((row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop))
+                    inside = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
+                    pick = np.flatnonzero(inside)
                     if len(pick):
                         loaded.append(rec)
                         picks.append(pick + offset)
@@ -375,8 +376,8 @@ class LasStore:
                         cols_in.append(col[pick])
                         offset += len(rec)
         if not loaded:
-            empty = np.zeros(0, np.int64)
-            return TilePoints(self._cloud(np.zeros(0, self.dtype)), empty, empty, empty.copy())
+            none = np.zeros(0, self.dtype)
+            return TilePoints(self._cloud(none), *(np.zeros(0, np.int64) for _ in range(3)))
         # one gather per field, straight into survey order (no copy of whole records)
         pick = np.concatenate(picks)
         order = np.concatenate([r["order"] for r in loaded])[pick]
