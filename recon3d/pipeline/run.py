@@ -134,7 +134,7 @@ class Evidence:
 
     share: np.ndarray  # share of vegetation among each cell's upper points
     planar: np.ndarray  # share of each cell's upper points on a local plane
-    fine: detect.FineSurface
+    fine: detect.FineSurface | None  # the detection's alone: dropped after it (9 bytes a fine cell)
     plane_tolerance: float
     density: float  # first returns per square metre
     crowns: np.ndarray | None = None  # cells of detected blobs found to be tree crowns after roof modelling
@@ -858,6 +858,7 @@ def find_buildings(r: Run) -> None:
                                     "(SOURCE_DATE_EPOCH sets another)"}
     r.labels = labels
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
+    r.evidence.fine = None  # four times the DSM's cells, needed by no later stage
 
 
 def _mapper(r: Run):
