@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -75,6 +76,26 @@ def peer_missing(peer: str, install: str, quick: bool) -> None:
     if not quick:
         refuse(f"{peer} is not installed ({install}); --quick runs without it")
     print(f"note: {peer} is not installed ({install}); skipped in --quick, recon3d's side only")
+
+
+#: How to get PDAL, the peer of the terrain and ground benchmarks (never a dependency).
+PDAL_INSTALL = "conda-forge pdal, Ubuntu's apt pdal, or on Debian: sudo sh scripts/pdal_chroot.sh"
+
+
+def use_pdal(skip: bool, quick: bool) -> bool:
+    """Whether a benchmark runs PDAL beside recon3d: on the PATH and not skipped
+    (``--no-pdal``); missing, :func:`peer_missing` says how to install it."""
+    if skip:
+        return False
+    if shutil.which("pdal") is None:
+        peer_missing("PDAL", PDAL_INSTALL, quick)
+        return False
+    return True
+
+
+def pdal_command(*args: str) -> list[str]:
+    """The command line running ``pdal`` with ``args``."""
+    return [shutil.which("pdal") or "pdal", *args]
 
 
 def peer_failed(peer: str, why: str, quick: bool) -> None:

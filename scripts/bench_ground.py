@@ -55,7 +55,6 @@ import itertools
 import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -97,7 +96,6 @@ QUICK_FILE = "ign_village_2154.laz"
 
 #: How to install the peers (benchmark-only, not dependencies).
 CSF_INSTALL = "pip install -e '.[bench]'"
-PDAL_INSTALL = "conda-forge pdal, Ubuntu's apt pdal, or on Debian: sudo sh scripts/pdal_chroot.sh"
 
 #: CSF's parameters (``interations`` is the package's spelling).
 CSF_PARAMS = (
@@ -248,15 +246,10 @@ def run_pdal_smrf(path: Path, repeat: int = 1) -> tuple[np.ndarray, float]:
         ]}))
         for _ in range(repeat):
             t = time.perf_counter()
-            subprocess.run([shutil.which("pdal") or "pdal", "pipeline", str(spec)], check=True, capture_output=True)
+            subprocess.run(_bench.pdal_command("pipeline", str(spec)), check=True, capture_output=True)
             best = min(best, time.perf_counter() - t)
         ground = np.asarray(laspy.read(out).classification) == ASPRS.GROUND
     return ground, best
-
-
-def have_pdal() -> bool:
-    """True when the ``pdal`` command is on the PATH."""
-    return shutil.which("pdal") is not None
 
 
 def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bool = False, quick: bool = False) -> dict:
@@ -292,11 +285,10 @@ def bench_file(path: Path, repeat: int, oracle: bool, csf: bool = True, pdal: bo
             is_ground, seconds = run_pdal_smrf(path, repeat)
         except subprocess.CalledProcessError as exc:
             _bench.peer_failed("PDAL", exc.stderr.decode(errors="replace"), quick)
-            pdal = False
-    if pdal:
-        if len(is_ground) != len(cloud):
-            raise SystemExit(f"{path.name}: PDAL returned {len(is_ground)} points for {len(cloud)}")
-        record["methods"]["pdal_smrf"] = ref.score(is_ground, seconds) | {"params": {"filters.smrf": "defaults"}}
+        else:
+            if len(is_ground) != len(cloud):
+                raise SystemExit(f"{path.name}: PDAL returned {len(is_ground)} points for {len(cloud)}")
+            record["methods"]["pdal_smrf"] = ref.score(is_ground, seconds) | {"params": {"filters.smrf": "defaults"}}
     if not csf:
         return record
     lo = cloud.xyz.min(axis=0)
@@ -399,9 +391,7 @@ def main() -> None:
         args.repeat, args.no_oracle = 1, True
 
     files = data_files(args.data, args.quick)
-    pdal = have_pdal() and not args.no_pdal
-    if not pdal and not args.no_pdal:
-        _bench.peer_missing("PDAL", PDAL_INSTALL, args.quick)
+    pdal = _bench.use_pdal(args.no_pdal, args.quick)
     csf = have_csf()
     if not csf:
         _bench.peer_missing("CSF", CSF_INSTALL, args.quick)

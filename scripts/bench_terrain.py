@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -43,7 +42,6 @@ import _bench
 
 DATA = _bench.SHARED / "lidar" / "delft_ahn3_strip.laz"
 CRS = "EPSG:7415"  # the Delft strip's, not in its header; a file with its own CRS keeps it
-PDAL_INSTALL = "conda-forge pdal, Ubuntu's apt pdal, or on Debian: sudo sh scripts/pdal_chroot.sh"
 
 
 def write_tiled(data: Path, kx: int, ky: int, out: Path) -> int:
@@ -177,7 +175,7 @@ def pdal_pipeline(path: Path, case: str, out: Path, resolution: float) -> list:
 def pdal_cmd(path: Path, case: str, out: Path, resolution: float) -> list[str]:
     spec = out / f"pdal_{case}.json"
     spec.write_text(json.dumps({"pipeline": pdal_pipeline(path, case, out, resolution)}))
-    return [shutil.which("pdal") or "pdal", "pipeline", str(spec)]
+    return _bench.pdal_command("pipeline", str(spec))
 
 
 # -- driver --------------------------------------------------------------------------
@@ -246,9 +244,7 @@ def main() -> None:
         _bench.refuse(f"--baseline {args.baseline}: no recon3d package in it")
     data = _bench.require(args.data, "LiDAR file")
     crs = CRS if data.name == DATA.name else None
-    pdal = shutil.which("pdal") is not None and not args.no_pdal
-    if not pdal and not args.no_pdal:
-        _bench.peer_missing("PDAL", PDAL_INSTALL, args.quick)
+    pdal = _bench.use_pdal(args.no_pdal, args.quick)
     record = {"data": str(data), "tiles": list(args.tiles), "repeat": args.repeat, "cases": {}}
     with tempfile.TemporaryDirectory(prefix="bench_terrain_") as tmp:
         tmp = Path(tmp)
