@@ -117,10 +117,15 @@ class TilePoints:
 
     def inside(self, rows: slice, cols: slice) -> np.ndarray:
         """(n,) bool: the points whose cell lies in ``[rows, cols]`` of the DSM grid."""
-        return (self.row >= rows.start) & (self.row < rows.stop) & (self.col >= cols.start) & (self.col < cols.stop)
+        return _in_window(self.row, self.col, rows, cols)
 
     def subset(self, keep: np.ndarray) -> TilePoints:
         return TilePoints(self.cloud[keep], self.order[keep], self.row[keep], self.col[keep])
+
+
+def _in_window(row: np.ndarray, col: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    """(n,) bool: the cells (row, col) inside ``[rows, cols]``."""
+    return (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
 
 
 def cell_rowcol(xyz: np.ndarray, transform) -> tuple[np.ndarray, np.ndarray]:
@@ -367,8 +372,7 @@ class LasStore:
                 if path.exists():
                     rec = self._load(path)
                     row, col = cell_rowcol(_xy(rec), transform)
-                    inside = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
-                    pick = np.flatnonzero(inside)
+                    pick = np.flatnonzero(_in_window(row, col, rows, cols))
                     if len(pick):
                         loaded.append(rec)
                         picks.append(pick + offset)
