@@ -227,7 +227,7 @@ class MemoryStore:
         if self._cells is None or self._cells[0] != transform:
             self._cells = (transform, *cell_rowcol(self.cloud.xyz, transform))
         _, row, col = self._cells
-        keep = (row >= rows.start) & (row < rows.stop) & (col >= cols.start) & (col < cols.stop)
+        keep = _in_window(row, col, rows, cols)
         if keep.all():
             return TilePoints(self.cloud, self.order, row, col)
         return TilePoints(self.cloud[keep], self.order[keep], row[keep], col[keep])
