@@ -200,3 +200,12 @@ def test_damaged_colmap_models(tmp_path):
         except Recon3dError:
             pass
         shutil.rmtree(scene)
+
+
+def test_raster_with_undecodable_tag_text_is_refused(tmp_path):
+    # found by the fuzzing above: a byte of the GeoTIFF's ASCII parameters made invalid
+    # UTF-8, which rasterio raised as a UnicodeDecodeError instead of its own error
+    make, read, suffix = READERS["tif"]
+    path = _write(tmp_path, spoil(_BASE.setdefault("tif", make()), None, [(541, 0), (550, 128)]), suffix)
+    with pytest.raises(Recon3dError, match="cannot read raster"):
+        read(path)

@@ -162,6 +162,11 @@ def write_image(data: np.ndarray, grid: Raster, path: str | Path, *, mask: np.nd
                                  photometric="RGB" if bands == 3 else "MINISBLACK", **THREADS)
 
 
+#: What GDAL and rasterio raise on a damaged raster: their own errors, and undecodable
+#: text in its tags (a UnicodeDecodeError, a ValueError) or CRS.
+DAMAGED_RASTER = (rasterio.errors.RasterioError, pyproj.exceptions.CRSError, ValueError)
+
+
 def read_raster(path: str | Path, *, max_side: int | None = None) -> Raster:
     """Read band 1 of a raster; its nodata value becomes NaN.
 
@@ -180,7 +185,7 @@ def read_raster(path: str | Path, *, max_side: int | None = None) -> Raster:
             crs = pyproj.CRS.from_wkt(src.crs.to_wkt()) if src.crs else None
             transform = src.transform @ Affine.scale(src.width / shape[1], src.height / shape[0])
             return Raster(data, transform, crs, dict(src.tags()))
-    except rasterio.errors.RasterioIOError as exc:
+    except DAMAGED_RASTER as exc:
         raise InputError(f"{path}: cannot read raster ({exc})") from None
 
 

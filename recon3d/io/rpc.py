@@ -484,9 +484,10 @@ def read_rpc_camera(image_path: str | Path) -> RPCCamera:
         When the image cannot be read, or no RPC is found (naming the image).
     """
     import rasterio
-    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
+    from rasterio.errors import NotGeoreferencedWarning
 
     from recon3d.io import require_file
+    from recon3d.io.geotiff import DAMAGED_RASTER
 
     path = require_file(image_path, "image")
     try:
@@ -496,7 +497,7 @@ def read_rpc_camera(image_path: str | Path) -> RPCCamera:
                 rpcs = src.rpcs
                 transform = src.transform
                 width, height = src.width, src.height
-    except RasterioIOError as exc:
+    except DAMAGED_RASTER as exc:
         raise InputError(f"{path}: cannot read image ({exc})") from None
 
     geom = path.with_suffix(".geom")
