@@ -8,7 +8,9 @@ degrees when the base runs along the columns), and scores both against the truth
 (:mod:`recon3d.synthetic.score`). Prints one table; ``--json`` keeps every figure.
 Columns: ``match%`` the truth's common area recon3d matched (not filled in), ``vis%``
 the share of it both images see unhidden (an upper bound on ``match%``), ``m/vis%``
-recon3d's own estimate of matched of visible (run.json ``stereo.common_area``).
+recon3d's own estimate of matched of visible (run.json ``stereo.common_area``),
+``RMSboth`` the tolerant DSM RMS over the cells both recon3d and OpenCV fill (the same
+ground for both, since OpenCV leaves much of a wide-base survey empty).
 
     .venv/bin/python scripts/bench_frame_stereo.py                 # full size, 9 named + 4 random
     .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
@@ -43,7 +45,8 @@ from recon3d.io.colmap import read_scene
 from recon3d.pipeline.run import run
 from recon3d.synthetic.family import CONFIGURATIONS, family
 from recon3d.synthetic.scene import scene_city, write_block_scene
-from recon3d.synthetic.score import score_stereo
+from recon3d.io.geotiff import read_raster
+from recon3d.synthetic.score import _on_grid, score_stereo, truth_range
 from recon3d.terrain.dsm import grid_points
 
 
@@ -161,7 +164,23 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
     score["ground_rms_dsm"] = _ground_on(dsm, truth)
     score["seconds"] = round(seconds, 2)
     row["opencv"] = score
+    if "recon3d" in row and "error" not in row["recon3d"]:
+        row["recon3d"]["rms_shared"] = _rms_where_both(folder, state.dsm, dsm, city)
+        score["rms_shared"] = _rms_where_both(folder, dsm, state.dsm, city)
     return row
+
+
+def _rms_where_both(folder: Path, dsm: Raster, other: Raster, city) -> float | None:
+    """Tolerant DSM RMS of ``dsm`` over the common cells ``other`` also fills: the two
+    pipelines' accuracy on the same ground, whatever each left empty."""
+    common = _on_grid(read_raster(folder / "truth" / "views.tif"), dsm) >= 2
+    cells = common & np.isfinite(dsm.data) & np.isfinite(_on_grid(other, dsm))
+    if not cells.any():
+        return None
+    lo, hi = truth_range(city, dsm, cells)
+    v = dsm.data
+    error = np.where(v > hi, v - hi, np.where(v < lo, v - lo, 0.0))[cells & np.isfinite(lo)]
+    return round(float(np.sqrt(np.mean(error**2))), 3) if error.size else None
 
 
 def bulldozer_dtm(dsm_path: Path, out: Path, truth: Path) -> dict | None:
@@ -174,8 +193,6 @@ def bulldozer_dtm(dsm_path: Path, out: Path, truth: Path) -> dict | None:
         from bulldozer.pipeline.bulldozer_pipeline import dsm_to_dtm
     except ImportError:
         return None
-    from recon3d.io.geotiff import read_raster
-
     t = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):  # its progress bars
         dsm_to_dtm(dsm_path=str(dsm_path), output_dir=str(out), nb_max_workers=2)
@@ -186,7 +203,7 @@ def bulldozer_dtm(dsm_path: Path, out: Path, truth: Path) -> dict | None:
 def _ground_on(dsm: Raster, truth: Path) -> float | None:
     from recon3d.synthetic.score import _checkpoints
 
-    views = __import__("recon3d.io.geotiff", fromlist=["read_raster"]).read_raster(truth / "views.tif")
+    views = read_raster(truth / "views.tif")
     xyz, kinds = _checkpoints(truth / "checkpoints.csv")
     inside = np.nan_to_num(views.sample(xyz[:, 0], xyz[:, 1], bilinear=False)) >= 2
     sel = inside & (kinds == "ground")
@@ -197,7 +214,7 @@ def _ground_on(dsm: Raster, truth: Path) -> float | None:
 
 COLUMNS = [
     ("coverage", "cover%"), ("observed", "match%"), ("visible", "vis%"), ("matched_of_visible", "m/vis%"),
-    ("dsm_rms_tolerant", "RMStol"), ("dsm_within_1m", "<=1m%"),
+    ("dsm_rms_tolerant", "RMStol"), ("rms_shared", "RMSboth"), ("dsm_within_1m", "<=1m%"),
     ("ground_rms", "gndDTM"), ("roof_rms", "roof"), ("footprint_completeness", "compl%"),
     ("footprint_correctness", "corr%"), ("object_completeness", "oComp%"), ("object_correctness", "oCorr%"),
     ("seconds", "s"),
@@ -225,6 +242,7 @@ def print_table(rows: list[dict]) -> None:
 
 #: The figures printed beside OpenCV's, with their ratio.
 RATIO_KEYS = [("coverage", "coverage %"), ("dsm_rms_tolerant", "DSM RMS (tolerant) m"),
+              ("rms_shared", "DSM RMS where both fill m"),
               ("dsm_within_1m", "DSM within 1 m %"), ("roof_rms", "roof RMS m"), ("seconds", "s (recon3d: whole run)")]
 
 #: ``--quick``: the survey and the image width.
