@@ -308,3 +308,28 @@ def test_resume_after_a_kill_redoes_only_the_unfinished_tiles(delft_run, tmp_pat
     assert any(f"took up the work of an earlier run ({done} tile results)" in n for n in notes), notes
     _same_products(out, delft_run.out_dir, "resumed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # the killed run's work folder is gone
+
+
+def test_tile_mosaic_windows_match_the_whole_grid(tmp_path):
+    """A window read from the tiles' saved results is the same cells as the whole placed
+    grid's, on a finer grid too, across tile edges and past the grid's end."""
+    from recon3d.pipeline.run import Grid
+    from recon3d.pipeline.tiling import Tile
+
+    shape, factor = (7, 11), 2
+    tiles = [Tile((r, c), slice(r0, min(r0 + 4, 7)), slice(c0, min(c0 + 4, 11)))
+             for r, r0 in enumerate(range(0, 7, 4)) for c, c0 in enumerate(range(0, 11, 4))]
+    rng = np.random.default_rng(0)
+    paths = []
+    for t in tiles[:-1]:  # the last tile saved nothing: its cells keep the fill
+        n, m = (t.rows.stop - t.rows.start) * factor, (t.cols.stop - t.cols.start) * factor
+        paths.append(tmp_path / f"{t.name}.npz")
+        np.savez(paths[-1], z=rng.normal(size=(n, m)))
+    grid = Grid(None, shape, tiles[:-1], None, {}, [])
+    whole = grid.place(paths, "z", factor=factor)
+    assert np.isnan(whole[8:, 16:]).all() and np.isfinite(whole[:8]).all() and np.isfinite(whole[:, :16]).all()
+    mosaic = grid.mosaic(paths, "z", factor=factor)
+    assert mosaic.shape == whole.shape
+    for window in [(slice(0, 14), slice(0, 22)), (slice(3, 11), slice(5, 17)), (slice(7, 9), slice(0, 30)),
+                   (slice(12, 14), slice(20, 22))]:
+        np.testing.assert_array_equal(mosaic[window], whole[window])

@@ -907,6 +907,10 @@ class FineSurface:
     z : (rows * FINE, cols * FINE) float64
         NaN where no first return fell.
     vegetation : (rows * FINE, cols * FINE) bool
+
+    Both are only ever read a window at a time (``z[rows, cols]``), so anything indexed
+    that way serves, such as a tiled run's
+    :class:`~recon3d.pipeline.run.TileMosaic`.
     """
 
     z: np.ndarray

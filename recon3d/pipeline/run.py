@@ -96,11 +96,44 @@ class Grid:
     def place(self, paths: list[Path], key: str, dtype=np.float64, fill=np.nan, factor: int = 1) -> np.ndarray:
         """The whole grid of one raster result of a tile pass, each tile's core in its
         place; on a grid ``factor`` times finer than the DSM's with ``factor``."""
-        f = factor
-        out = np.full((self.shape[0] * f, self.shape[1] * f), fill, dtype)
-        for tile, path in zip(self.tiles, paths, strict=True):
-            with np.load(path) as data:
-                out[tile.rows.start * f:tile.rows.stop * f, tile.cols.start * f:tile.cols.stop * f] = data[key]
+        return self.mosaic(paths, key, dtype, fill, factor)[:, :]
+
+    def mosaic(self, paths: list[Path], key: str, dtype=np.float64, fill=np.nan, factor: int = 1) -> TileMosaic:
+        """One raster result of a tile pass, read a window at a time (see :class:`TileMosaic`)."""
+        return TileMosaic(self, paths, key, np.dtype(dtype), fill, factor)
+
+
+@dataclass
+class TileMosaic:
+    """One raster result of a tile pass, read from the tiles' saved results a window at
+    a time: a stage that walks the grid in strips holds one strip, not the survey.
+
+    Indexing with two slices, ``mosaic[rows, cols]``, returns that window as a new
+    array, each tile's core in its place and ``fill`` where no tile is.
+    """
+
+    grid: Grid
+    paths: list[Path]
+    key: str
+    dtype: np.dtype
+    fill: Any
+    factor: int = 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.grid.shape[0] * self.factor, self.grid.shape[1] * self.factor
+
+    def __getitem__(self, window: tuple[slice, slice]) -> np.ndarray:
+        (r0, r1, _), (c0, c1, _) = (w.indices(n) for w, n in zip(window, self.shape, strict=True))
+        out = np.full((max(r1 - r0, 0), max(c1 - c0, 0)), self.fill, self.dtype)
+        f = self.factor
+        for tile, path in zip(self.grid.tiles, self.paths, strict=True):
+            tr, tc = tile.rows.start * f, tile.cols.start * f
+            a0, a1 = max(r0, tr), min(r1, tile.rows.stop * f)
+            b0, b1 = max(c0, tc), min(c1, tile.cols.stop * f)
+            if a0 < a1 and b0 < b1:
+                with np.load(path) as data:
+                    out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = data[self.key][a0 - tr:a1 - tr, b0 - tc:b1 - tc]
         return out
 
 
@@ -134,7 +167,7 @@ class Evidence:
 
     share: np.ndarray  # share of vegetation among each cell's upper points
     planar: np.ndarray  # share of each cell's upper points on a local plane
-    fine: detect.FineSurface | None  # the detection's alone: dropped after it (9 bytes a fine cell)
+    fine: detect.FineSurface | None  # the detection's alone, read from the tiles a strip at a time
     plane_tolerance: float
     density: float  # first returns per square metre
     crowns: np.ndarray | None = None  # cells of detected blobs found to be tree crowns after roof modelling
@@ -795,8 +828,9 @@ def classify_vegetation(r: Run) -> None:
     paths = r.tiles("vegetation_decide", passes.vegetation_decide, [(survey, noise, buffer, tolerance)] * len(g.tiles))
     share = g.place(paths, "share", np.float32, fill=0.0)
     planar = g.place(paths, "planar", np.float32, fill=1.0)
-    fine = detect.FineSurface(g.place(paths, "fine_z", factor=detect.FINE),
-                              g.place(paths, "fine_vegetation", bool, False, factor=detect.FINE))
+    # read by the detection a strip at a time: four times the DSM's cells never held whole
+    fine = detect.FineSurface(g.mosaic(paths, "fine_z", factor=detect.FINE),
+                              g.mosaic(paths, "fine_vegetation", bool, False, factor=detect.FINE))
     finite = np.count_nonzero(np.isfinite(r.surface.dsm.data))
     area = finite * u.area(1.0) ** -1 * g.transform.a**2
     density = float(r.surface.first_returns / area) if area > 0 else 0.0
@@ -858,7 +892,6 @@ def find_buildings(r: Run) -> None:
                                     "(SOURCE_DATE_EPOCH sets another)"}
     r.labels = labels
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
-    r.evidence.fine = None  # four times the DSM's cells, needed by no later stage
 
 
 def _mapper(r: Run):
