@@ -79,7 +79,8 @@ class StereoConfig:
         half a pixel per pixel or more), else 0.
     tie_point_margin : float
         Frame stereo: a dense point more than this many metres below every tie point
-        (sparse point) around it is a mismatch and is removed
+        (sparse point) around it, or, with no tie point around it, this much plus three
+        spreads below the plane under the tie points, is a mismatch and is removed
         (``recon3d.stereo.check.under_tie_points``); ``inf`` turns the test off.
     """
 

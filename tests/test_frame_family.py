@@ -108,8 +108,10 @@ def test_mismatches_under_a_hilltop_do_not_sink_the_dtm(tmp_path):
 
 def test_points_far_below_every_tie_point_are_mismatches():
     """On a 10 % slope with tie points on the ground and on roofs, a cluster of dense
-    points 30 m low is flagged; the terrain, a 4 m pit and a low cluster with no tie
-    point within the radius are not."""
+    points 30 m low is flagged, and so is one with no tie point within the radius (the
+    plane under the tie points judges it: mismatches where the second image ends, as on
+    a survey of the family whose DTM sank 9 m there); the terrain, with or without tie
+    points around it, and a 4 m pit are not."""
     from recon3d.core.geo import Units
     from recon3d.stereo.check import tie_point_radius, under_tie_points
 
@@ -128,8 +130,30 @@ def test_points_far_below_every_tie_point_are_mismatches():
     radius, why = tie_point_radius(ties, Units())
     assert 30.0 <= radius <= 60.0 and "spacing" in why  # 3 tie point spacings here
     under = under_tie_points(np.column_stack([x, y, z]), ties, radius=radius, margin=10.0)
-    assert under[mismatch].all()
-    assert not under[~mismatch].any()
+    assert under[mismatch | far].all()
+    assert not under[~(mismatch | far)].any()
+
+
+def test_the_plane_under_the_tie_points_is_lenient_on_hills():
+    """Far from every tie point, hilly ground (tie points scattered metres about their
+    plane) is kept down to its valleys; only what lies far below them is flagged."""
+    from recon3d.stereo.check import tie_ground, under_tie_points
+
+    rng = np.random.default_rng(6)
+
+    def hills(x, y):
+        return 50.0 + 8.0 * np.sin(x / 40.0) * np.cos(y / 50.0)
+
+    tx, ty = rng.uniform(1000.0, 1200.0, 300), rng.uniform(2000.0, 2300.0, 300)
+    ties = np.column_stack([tx, ty, hills(tx, ty)])
+    plane, spread = tie_ground(ties)
+    assert spread > 1.0
+    x, y = rng.uniform(1250.0, 1400.0, 50_000), rng.uniform(2000.0, 2300.0, 50_000)
+    z = hills(x, y)
+    low = (x > 1300) & (x < 1310) & (y > 2100) & (y < 2110)
+    z[low] -= 40.0
+    under = under_tie_points(np.column_stack([x, y, z]), ties, radius=30.0, margin=10.0)
+    assert under[low].all() and not under[~low].any()
 
 
 def test_buildings_made_of_filled_holes_are_dropped():

@@ -41,7 +41,8 @@ from recon3d.errors import InputError
 from recon3d.stereo.rectify import RectifiedPair
 from recon3d.terrain.dsm import grid_points
 
-__all__ = ["LIMITS", "TIE_POINT_RADIUS", "check_pair", "tie_point_radius", "under_tie_points", "verdict"]
+__all__ = ["LIMITS", "MIN_TIE_POINTS_FOR_PLANE", "TIE_POINT_RADIUS", "check_pair", "tie_ground", "tie_point_radius",
+           "under_tie_points", "verdict"]
 
 #: Thresholds of :func:`verdict`: least coverage (percent, a warning below), largest
 #: median discrepancy (ground sample distances) and largest 95th percentile of the
@@ -206,8 +207,9 @@ def tie_point_radius(tie_points: np.ndarray, units: Units) -> tuple[float, str]:
 def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, margin: float) -> np.ndarray:
     """(n,) bool: points more than ``margin`` below every tie point within ``radius``.
 
-    The radius is rounded to cells of about ``radius / 8``. Points with no tie point
-    within it are never flagged.
+    The radius is rounded to cells of about ``radius / 8``. A point with no tie point
+    within it is judged against the ground of all of them instead (:func:`tie_ground`):
+    flagged when more than ``margin`` plus three times that plane's spread below it.
 
     Parameters
     ----------
@@ -234,4 +236,46 @@ def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, 
     rows = np.clip(np.floor(rows).astype(np.int64), 0, shape[0] - 1)
     cols = np.clip(np.floor(cols).astype(np.int64), 0, shape[1] - 1)
     floor = floor[rows, cols].astype(np.float64)
-    return np.isfinite(floor) & (xyz[:, 2] < floor - margin)  # inf: no tie point within the radius
+    under = np.isfinite(floor) & (xyz[:, 2] < floor - margin)  # inf: no tie point within the radius
+    far = ~np.isfinite(floor)
+    if far.any() and len(tie_points) >= MIN_TIE_POINTS_FOR_PLANE:
+        plane, spread = tie_ground(tie_points)
+        under[far] = xyz[far, 2] < plane(xyz[far, :2]) - margin - 3.0 * spread
+    return under
+
+
+#: Tie points needed to fit :func:`tie_ground`'s plane.
+MIN_TIE_POINTS_FOR_PLANE = 10
+
+
+def tie_ground(tie_points: np.ndarray):
+    """The plane under the tie points, and the spread of the ground tie points about it.
+
+    Least squares on the lower half of the tie points, three times over (each round keeps
+    those at or below the median residual of the last): roofs and trees drop out, the
+    ground and its slope stay. The spread is the NMAD of the residuals of the lower half
+    of all the tie points: a plane fits flat or evenly sloping ground closely, hills
+    loosely.
+
+    Returns
+    -------
+    plane : callable
+        ``plane(xy)`` -> (n,) heights, for (n, 2) coordinates.
+    spread : float
+    """
+    t = np.asarray(tie_points, np.float64)
+    centre = t[:, :2].mean(axis=0)
+    design = np.column_stack([t[:, :2] - centre, np.ones(len(t))])
+    keep = np.ones(len(t), bool)
+    for _ in range(3):
+        coef = np.linalg.lstsq(design[keep], t[keep, 2], rcond=None)[0]
+        residual = t[:, 2] - design @ coef
+        keep = residual <= np.median(residual[keep])
+    lower = residual[residual <= np.median(residual)]
+    spread = 1.4826 * float(np.median(np.abs(lower - np.median(lower))))
+
+    def plane(xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, np.float64) - centre
+        return xy[:, 0] * coef[0] + xy[:, 1] * coef[1] + coef[2]
+
+    return plane, spread
