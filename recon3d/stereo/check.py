@@ -30,6 +30,7 @@ figures named.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -248,7 +249,7 @@ def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, 
 MIN_TIE_POINTS_FOR_PLANE = 10
 
 
-def tie_ground(tie_points: np.ndarray):
+def tie_ground(tie_points: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], float]:
     """The plane under the tie points, and the spread of the ground tie points about it.
 
     Least squares on the lower half of the tie points, three times over (each round keeps
@@ -256,6 +257,11 @@ def tie_ground(tie_points: np.ndarray):
     ground and its slope stay. The spread is the NMAD of the residuals of the lower half
     of all the tie points: a plane fits flat or evenly sloping ground closely, hills
     loosely.
+
+    Parameters
+    ----------
+    tie_points : (m, 3) float
+        Sparse points, at least :data:`MIN_TIE_POINTS_FOR_PLANE` of them.
 
     Returns
     -------
