@@ -42,11 +42,11 @@ import numpy as np
 from recon3d.config import PipelineConfig
 from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.io.colmap import read_scene
+from recon3d.io.geotiff import read_raster
 from recon3d.pipeline.run import run
 from recon3d.synthetic.family import CONFIGURATIONS, family
 from recon3d.synthetic.scene import scene_city, write_block_scene
-from recon3d.io.geotiff import read_raster
-from recon3d.synthetic.score import _on_grid, score_stereo, truth_range
+from recon3d.synthetic.score import _on_grid, _rms, score_stereo, tolerant_error
 from recon3d.terrain.dsm import grid_points
 
 
@@ -174,13 +174,7 @@ def _rms_where_both(folder: Path, dsm: Raster, other: Raster, city) -> float | N
     """Tolerant DSM RMS of ``dsm`` over the common cells ``other`` also fills: the two
     pipelines' accuracy on the same ground, whatever each left empty."""
     common = _on_grid(read_raster(folder / "truth" / "views.tif"), dsm) >= 2
-    cells = common & np.isfinite(dsm.data) & np.isfinite(_on_grid(other, dsm))
-    if not cells.any():
-        return None
-    lo, hi = truth_range(city, dsm, cells)
-    v = dsm.data
-    error = np.where(v > hi, v - hi, np.where(v < lo, v - lo, 0.0))[cells & np.isfinite(lo)]
-    return round(float(np.sqrt(np.mean(error**2))), 3) if error.size else None
+    return _rms(tolerant_error(city, dsm, common & np.isfinite(_on_grid(other, dsm))))
 
 
 def bulldozer_dtm(dsm_path: Path, out: Path, truth: Path) -> dict | None:

@@ -35,7 +35,7 @@ from recon3d.synthetic import write_scene
 from recon3d.synthetic.city import truth_disparity
 from recon3d.synthetic.family import CONFIGURATIONS
 from recon3d.synthetic.scene import scene_city, write_block_scene
-from recon3d.synthetic.score import _on_grid, truth_range
+from recon3d.synthetic.score import _on_grid, tolerant_error
 
 
 def main() -> None:
@@ -113,10 +113,7 @@ def _places(scene: Path):
 
 
 def _budget(dsm, city, common, places: dict[str, np.ndarray]) -> dict:
-    lo, hi = truth_range(city, dsm, common & np.isfinite(dsm.data))
-    v = dsm.data
-    error = np.where(v > hi, v - hi, np.where(v < lo, v - lo, 0.0))
-    error[~common] = np.nan
+    error = tolerant_error(city, dsm, common)
     valid = np.isfinite(error)
     total = float(np.sum(error[valid] ** 2))
     out = {"all": (int(valid.sum()), float(np.sqrt(total / valid.sum())), 100.0)}

@@ -14,8 +14,7 @@ from recon3d.core.geo import Units
 from recon3d.core.pointcloud import PointCloud
 from recon3d.errors import InputError
 from recon3d.io.colmap import StereoScene
-from recon3d.stereo.check import (MIN_TIE_POINTS_FOR_PLANE, check_pair, tie_ground, tie_point_radius,
-                                  under_tie_points, verdict)
+from recon3d.stereo.check import check_pair, tie_ground, tie_point_radius, under_tie_points, verdict
 from recon3d.stereo.fuse import fuse
 from recon3d.stereo.rectify import RectifiedPair, rectify_pair, select_pairs
 from recon3d.stereo.triangulate import triangulate
@@ -113,8 +112,9 @@ def _without_points_under_tie_points(cloud: PointCloud, scene: StereoScene, conf
                   f"none within it, {margin:g} m plus 3 spreads below the plane under the tie points: "
                   "mismatches, removed",
     }
-    if len(ties) >= MIN_TIE_POINTS_FOR_PLANE:
-        report["under_tie_points"]["plane_spread"] = round(tie_ground(ties)[1] * units.vertical, 3)
+    ground = tie_ground(ties)
+    if ground is not None:
+        report["under_tie_points"]["plane_spread"] = round(ground[1] * units.vertical, 3)
     if under.any():
         log.info("%d dense points more than %g m below the tie points around them removed", int(under.sum()), margin)
         cloud = cloud[~under]

@@ -239,8 +239,9 @@ def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, 
     floor = floor[rows, cols].astype(np.float64)
     under = np.isfinite(floor) & (xyz[:, 2] < floor - margin)  # inf: no tie point within the radius
     far = ~np.isfinite(floor)
-    if far.any() and len(tie_points) >= MIN_TIE_POINTS_FOR_PLANE:
-        plane, spread = tie_ground(tie_points)
+    ground = tie_ground(tie_points) if far.any() else None
+    if ground is not None:
+        plane, spread = ground
         under[far] = xyz[far, 2] < plane(xyz[far, :2]) - margin - 3.0 * spread
     return under
 
@@ -249,7 +250,7 @@ def under_tie_points(xyz: np.ndarray, tie_points: np.ndarray, *, radius: float, 
 MIN_TIE_POINTS_FOR_PLANE = 10
 
 
-def tie_ground(tie_points: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], float]:
+def tie_ground(tie_points: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarray], float] | None:
     """The plane under the tie points, and the spread of the ground tie points about it.
 
     Least squares on the lower half of the tie points, three times over (each round keeps
@@ -261,15 +262,18 @@ def tie_ground(tie_points: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarra
     Parameters
     ----------
     tie_points : (m, 3) float
-        Sparse points, at least :data:`MIN_TIE_POINTS_FOR_PLANE` of them.
+        Sparse points.
 
     Returns
     -------
     plane : callable
         ``plane(xy)`` -> (n,) heights, for (n, 2) coordinates.
     spread : float
+        None instead of both with fewer than :data:`MIN_TIE_POINTS_FOR_PLANE` tie points.
     """
     t = np.asarray(tie_points, np.float64)
+    if len(t) < MIN_TIE_POINTS_FOR_PLANE:
+        return None
     centre = t[:, :2].mean(axis=0)
     design = np.column_stack([t[:, :2] - centre, np.ones(len(t))])
     keep = np.ones(len(t), bool)

@@ -35,7 +35,7 @@ from recon3d.core.raster import Raster
 from recon3d.io.geotiff import read_raster
 from recon3d.synthetic.city import SyntheticCity
 
-__all__ = ["scene_cameras", "score_stereo", "truth_range"]
+__all__ = ["scene_cameras", "score_stereo", "tolerant_error", "truth_range"]
 
 
 def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -67,6 +67,18 @@ def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: i
         lo[r, c] = np.nanmin(z, axis=1)
         hi[r, c] = np.nanmax(z, axis=1)
     return lo, hi
+
+
+def tolerant_error(city: SyntheticCity, dsm: Raster, cells: np.ndarray) -> np.ndarray:
+    """(rows, cols) DSM error where any height between the lowest and the highest truth
+    surface within the cell counts as exact (:func:`truth_range`): 0 inside that range,
+    the signed distance to it outside. NaN outside ``cells``, where the DSM is empty and
+    where the truth has no surface."""
+    cells = cells & np.isfinite(dsm.data)
+    lo, hi = truth_range(city, dsm, cells)
+    v = dsm.data
+    error = np.where(v > hi, v - hi, np.where(v < lo, v - lo, 0.0))
+    return np.where(cells & np.isfinite(lo), error, np.nan)
 
 
 def score_stereo(
@@ -114,10 +126,10 @@ def score_stereo(
     if observed is not None:
         out["observed"] = _pct(observed[common])
     out["visible"] = _visible_share(scene, city, dsm, common)
-    lo, hi = truth_range(city, dsm, common & finite)
+    error = tolerant_error(city, dsm, common)
     exact = _on_grid(read_raster(truth / "dsm.tif"), dsm)
-    cells = common & finite & np.isfinite(lo)
-    tolerant = np.where(value > hi, value - hi, np.where(value < lo, value - lo, 0.0))[cells]
+    cells = np.isfinite(error)
+    tolerant = error[cells]
     plain = (value - exact)[cells & np.isfinite(exact)]
     out["dsm_rms_tolerant"] = _rms(tolerant)
     out["dsm_within_1m"] = _pct(np.abs(plain) <= 1.0)
