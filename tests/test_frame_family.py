@@ -467,21 +467,29 @@ def test_dem_that_misses_the_scene(small_scene, tmp_path):
     run_fails([small_scene, "--dem", dem], tmp_path, "dem.tif", "does not cover")
 
 
-def test_common_area_of_a_wide_angle_survey(tmp_path):
-    """wide_base (focal 900 px for 2000, barrel distortion, B/H 1.0): the area both images
-    see is found through the lens. Projected without the distortion, and with every cell
-    tested at the height of the highest roof within 10 m, it held 54 % of the truth's
-    common area (now 76 %), and the DSM's holes outside it stayed empty."""
+@pytest.mark.parametrize("name, found, coverage", [("wide_base", 0.88, 95.0), ("random_4", 0.85, 90.0)])
+def test_common_area_of_a_wide_angle_survey(name, found, coverage, tmp_path):
+    """The area both images see, found through the lens and judged, where nothing was
+    matched, by the surfaces within 2 m. wide_base (focal 900 px for 2000, barrel
+    distortion, B/H 1.0): projected without the distortion, and with every cell tested
+    at the highest roof within 10 m, the common area held 54 % of the truth's; through
+    the lens, empty cells at the scene's median height and the highest roof within 10 m,
+    76 % (DSM coverage 90.2 %); now 92 % (97.1 %). random_4 (focal 0.64 x the width,
+    B/H 0.70, a slope): 69 % (DSM coverage 79.4 %), now 89 % (92.8 %)."""
     from recon3d.io.geotiff import read_raster
     from recon3d.pipeline.run import run
     from recon3d.synthetic.score import _on_grid
 
+    spec = CONFIGURATIONS[name] if name in CONFIGURATIONS else random_spec(int(name.split("_")[1]))
     folder = tmp_path / "scene"
-    write_block_scene(folder, CONFIGURATIONS["wide_base"].with_width(WIDTH))
+    write_block_scene(folder, spec.with_width(WIDTH))
     state = run(folder, tmp_path / "out")
     truth = _on_grid(read_raster(folder / "truth" / "views.tif"), state.dsm) >= 2
-    assert (truth & state.common_area).sum() >= 0.70 * truth.sum()
-    assert (state.common_area & ~truth).sum() <= 0.10 * truth.sum()
+    assert (truth & state.common_area).sum() >= found * truth.sum()
+    assert (state.common_area & ~truth).sum() <= 0.20 * truth.sum()
+    assert 100.0 * np.isfinite(state.dsm.data)[truth].mean() >= coverage
+    if name != "wide_base":
+        return
     # at B/H 1.0 roof faces are foreshortened in one view: sheared census windows, said why
     slant = state.auto["stereo"]["pairs"][0]["slant"]
     assert slant["value"] == 0.5 and slant["reason"].startswith("base-to-height 1.0"), slant

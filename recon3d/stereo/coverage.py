@@ -21,6 +21,7 @@ __all__ = [
     "COMMON_AREA_MARGIN_PX",
     "MIN_COMMON_FILLED",
     "MIN_MATCHED_OF_VISIBLE",
+    "NEIGHBOURHOOD",
     "common_area",
     "common_area_fill",
     "holes_both_saw",
@@ -46,18 +47,26 @@ MIN_COMMON_FILLED = 95.0
 #: a matcher that fills in half of each image 40 %.
 MIN_MATCHED_OF_VISIBLE = 70.0
 
+#: Radius (m) around an empty cell of the surfaces :func:`common_area` judges it by.
+#: On the nine surveys of the family run at 1000 px, 2 m rather than 10 m (and the
+#: lowest surface rather than the median) raised the DSM's share of the true common
+#: area from 95.2-95.9 % to 98.2-99.0 % on the four wide-base surveys, and from 85.6 %
+#: to 89.4 % on a wide-angle slope, at the same tolerant RMS (within 0.03 m).
+NEIGHBOURHOOD = 2.0
+
 
 def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, units: Units) -> np.ndarray:
     """Frame stereo: (rows, cols) bool, the cells both images of a matched pair see.
 
     A cell is in the common area when its centre lies inside both images of a pair that
     was matched, :data:`COMMON_AREA_MARGIN_PX` or more from their borders (through the
-    lens, as the photos were taken), at its own height; without a height, the median.
-    A cell holding no matched point must also lie inside them at the height of the
-    highest surface within 10 m, so that ground beside a roof the image border cuts is
-    not taken for ground in view. (Asking it of every cell lost a third of the common
-    area of a wide-angle survey: near the borders, 12 m of height moves a point out of
-    the frame; a matched cell is in view whatever its neighbours.)
+    lens, as the photos were taken), at its own height. A cell without a height takes
+    the lowest surface within :data:`NEIGHBOURHOOD` (else the nearest cell's): what a
+    matcher leaves empty is mostly ground hidden from one image, and the scene's median
+    height, used before, put empty cells on a slope metres off and out of frame. A cell
+    holding no matched point must also lie inside them at the height of the highest
+    surface within :data:`NEIGHBOURHOOD`, so that the part of a roof the image border
+    cuts is not taken for ground in view.
 
     Parameters
     ----------
@@ -74,9 +83,8 @@ def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, uni
     xs, ys = dsm.cell_centers()
     x, y = np.meshgrid(xs, ys)
     finite = np.isfinite(dsm.data)
-    median = float(np.nanmedian(dsm.data)) if finite.any() else 0.0
-    own = np.where(finite, dsm.data, median)
-    size = 2 * int(np.ceil(units.length(10.0) / dsm.resolution)) + 1
+    size = 2 * int(np.ceil(units.length(NEIGHBOURHOOD) / dsm.resolution)) + 1
+    own = _lowest_around(dsm.data, size)
     high = ndimage.maximum_filter(np.where(finite, dsm.data, -np.inf), size=size)
     high = np.where(np.isfinite(high), np.maximum(high, own), own)
     observed = observed.ravel()
@@ -97,6 +105,19 @@ def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, uni
         a, b = record["images"]
         common |= frames[a] & frames[b]
     return common.reshape(dsm.shape)
+
+
+def _lowest_around(data: np.ndarray, size: int) -> np.ndarray:
+    """(rows, cols) float: ``data``, its NaN cells given the lowest value in the
+    ``size`` x ``size`` window around them, or the nearest value when the window holds
+    none (0 for an all-NaN grid)."""
+    finite = np.isfinite(data)
+    if not finite.any():
+        return np.zeros(data.shape)
+    low = ndimage.minimum_filter(np.where(finite, data, np.inf), size=size)
+    rows, cols = ndimage.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+    guess = np.where(np.isfinite(low), low, data[rows, cols])
+    return np.where(finite, data, guess)
 
 
 def holes_both_saw(scene, pairs: list[dict], raw: Raster, area: np.ndarray, max_cells: int) -> np.ndarray:
