@@ -211,6 +211,47 @@ def test_seen_by_all_finds_what_the_views_must_have_seen():
     assert not outside.any()  # the second camera's picture does not cover them
 
 
+def test_hidden_ground_filled_from_a_roof_is_lowered():
+    """Beside a matched 15 m block, ground hidden from the east camera (cameras 100 m up,
+    50 m to either side) was filled in at 10 m: at that height the block hides it from
+    the east camera too, so only the second test of unseen_guesses finds it (the west
+    camera sees its ground, the east camera does not). A part of the roof the matcher
+    missed, filled in at 10 m, stands over ground neither camera sees, and keeps its
+    height."""
+    from types import SimpleNamespace
+
+    from affine import Affine
+
+    from recon3d.core.camera import Camera
+    from recon3d.core.raster import Raster
+    from recon3d.stereo.coverage import unseen_guesses
+
+    def nadir(name, x, y, z):
+        R = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[1000.0, 0, 999.5], [0, 1000.0, 999.5], [0, 0, 1]])
+        return Camera(name, K, np.zeros(5), R, -R @ np.array([x, y, z]), 2000, 2000)
+
+    scene = SimpleNamespace(cameras=[nadir("w", -20.0, 30.0, 100.0), nadir("e", 80.0, 30.0, 100.0)],
+                            offset=np.zeros(3))
+    z = np.zeros((60, 60))
+    z[20:40, 20:40] = 15.0
+    matched = np.ones(z.shape, bool)
+    beside = (slice(28, 32), slice(17, 20))  # west of the block: hidden from the east camera
+    missed = (slice(28, 30), slice(28, 30))  # in the middle of the roof
+    z[beside] = z[missed] = 10.0
+    matched[beside] = matched[missed] = False
+    transform = Affine(1.0, 0, 0.0, 0, -1.0, 60.0)
+    dsm, dtm = Raster(z, transform), Raster(np.zeros(z.shape), transform)
+    lower = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, tolerance=0.5, min_area=4.0)
+    assert lower[beside].all()
+    assert not lower[missed].any()
+    assert lower.sum() == 12
+    # with no matched surface to hide its ground, only the first test judges it: the block hides it at 10 m
+    old_rule_only = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, np.zeros(z.shape, bool),
+                                   tolerance=0.5, min_area=4.0)
+    assert not old_rule_only[beside].any()
+
+
 def test_matcher_against_the_exact_disparity(scene):
     """The ray-cast disparity of the rendered pair is exact, and the matcher agrees with it.
 

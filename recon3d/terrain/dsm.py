@@ -351,7 +351,8 @@ def make_dsm(
 
 
 def seen_by_all(
-    dsm: Raster, cells: np.ndarray, cameras: np.ndarray, *, tolerance: float, in_frame=None
+    dsm: Raster, cells: np.ndarray, cameras: np.ndarray, *, tolerance: float, in_frame=None,
+    heights: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which of ``cells``, at their DSM height, every camera would see over the DSM.
 
@@ -373,6 +374,9 @@ def seen_by_all(
     in_frame : callable, optional
         ``in_frame(i, xyz)`` -> (n,) bool: whether camera ``i`` images the (n, 3)
         points at all (inside its picture); a point outside a picture is not seen.
+    heights : (rows, cols) float, optional
+        Heights to test the cells at (default: their DSM heights); the DSM still
+        decides what hides them.
 
     Returns
     -------
@@ -380,10 +384,13 @@ def seen_by_all(
         True at the tested cells with a finite height that no DSM cell hides from any camera.
     """
     z_all = np.where(np.isfinite(dsm.data), dsm.data, -np.inf)
-    rows, cols = np.nonzero(cells & np.isfinite(dsm.data))
+    heights = dsm.data if heights is None else heights
+    rows, cols = np.nonzero(cells & np.isfinite(heights))
     t = dsm.transform  # north-up grid, as everywhere in recon3d
     x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
-    z = dsm.data[rows, cols].astype(np.float64)
+    z = heights[rows, cols].astype(np.float64)
+    if not z.size:
+        return np.zeros(cells.shape, bool)
     top = float(np.max(z_all))
     step = dsm.resolution
     visible = np.ones(rows.size, bool)
