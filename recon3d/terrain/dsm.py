@@ -354,7 +354,7 @@ def seen_by_all(
     dsm: Raster, cells: np.ndarray, cameras: np.ndarray, *, tolerance: float, in_frame=None,
     heights: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Which of ``cells``, at their DSM height, every camera would see over the DSM.
+    """Which of ``cells``, at their DSM height (or ``heights``), every camera would see over the DSM.
 
     Walks from each cell towards each camera one cell at a time and looks for a DSM
     cell above the ray (by more than ``tolerance``), until the ray clears the highest

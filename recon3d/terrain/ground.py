@@ -303,7 +303,7 @@ def minimum_surface(
     else:
         window, why = _auto_window(surface, cell, units)
         params["max_window"] = _chosen(round(window * units.horizontal, 1), why)
-    trend = _trend(surface, cell, window)
+    trend = _trend(surface, measured, cell, window)
     if config.slope is not None:
         slope = config.slope
         params["slope"] = _chosen(slope, "config")
@@ -553,17 +553,21 @@ def _auto_window(surface: np.ndarray, cell: float, units: Units) -> tuple[float,
     return units.length(window_m), f"widest raised object {width_m:.1f} m across (bounded to 10-60 m)"
 
 
-def _trend(surface: np.ndarray, cell: float, window: float) -> np.ndarray:
+def _trend(surface: np.ndarray, measured: np.ndarray, cell: float, window: float) -> np.ndarray:
     """Large-scale terrain: a plane, plus the opening of the rest with the largest window, smoothed.
 
     The plane is fitted to the opened surface first, because openings near the border
-    of a tilted tile see the replicated edge as a plateau.
+    of a tilted tile see the replicated edge as a plateau; and to its ``measured`` cells
+    only: the cells filled from their nearest neighbour outside the data (four fifths of
+    the grid of a frame-stereo survey seen at an angle) copy the values at the data's
+    edge, mismatches under the ground among them, and tilted the plane towards them.
     """
     k = max(1, round(window / cell / 2))
     rows, cols = np.indices(surface.shape, dtype=np.float64)
     opened = _open(surface, k).astype(np.float64)
     design = np.column_stack([rows.ravel(), cols.ravel(), np.ones(surface.size)])
-    coef = np.linalg.lstsq(design, opened.ravel(), rcond=None)[0]
+    fit = measured.ravel() if measured.sum() >= 3 else slice(None)
+    coef = np.linalg.lstsq(design[fit], opened.ravel()[fit], rcond=None)[0]
     plane = (design @ coef).reshape(surface.shape)
     rest = _open(surface - plane, k).astype(np.float64)
     return plane + ndimage.uniform_filter(rest, size=k + 1, mode="nearest")
