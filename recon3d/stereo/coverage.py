@@ -50,8 +50,8 @@ MIN_MATCHED_OF_VISIBLE = 70.0
 #: Radius (m) around an empty cell of the surfaces :func:`common_area` judges it by.
 #: On the nine surveys of the family run at 1000 px, 2 m rather than 10 m (and the
 #: lowest surface rather than the median) raised the DSM's share of the true common
-#: area from 95.2-95.9 % to 98.2-99.0 % on the four wide-base surveys, and from 85.6 %
-#: to 89.4 % on a wide-angle slope, at the same tolerant RMS (within 0.03 m).
+#: area from 95.2-95.9 % to 98.2-99.0 % on three wide-base surveys (B/H 0.5-1.0), and
+#: from 85.6 % to 89.4 % on a wide-angle slope, at the same tolerant RMS (within 0.03 m).
 NEIGHBOURHOOD = 2.0
 
 
