@@ -16,6 +16,7 @@ from scipy import ndimage
 from recon3d.core.geo import Units
 from recon3d.core.raster import Raster
 from recon3d.terrain.dsm import grid_points, seen_by_all
+from recon3d.terrain.dtm import fill_nearest
 
 __all__ = [
     "COMMON_AREA_MARGIN_PX",
@@ -115,9 +116,7 @@ def _lowest_around(data: np.ndarray, size: int) -> np.ndarray:
     if not finite.any():
         return np.zeros(data.shape)
     low = ndimage.minimum_filter(np.where(finite, data, np.inf), size=size)
-    rows, cols = ndimage.distance_transform_edt(~finite, return_distances=False, return_indices=True)
-    guess = np.where(np.isfinite(low), low, data[rows, cols])
-    return np.where(finite, data, guess)
+    return np.where(finite, data, np.where(np.isfinite(low), low, fill_nearest(data)))
 
 
 def holes_both_saw(scene, pairs: list[dict], raw: Raster, area: np.ndarray, max_cells: int) -> np.ndarray:
@@ -237,13 +236,15 @@ def _seen_by_one(scene, pairs: list[dict], dsm: Raster, dtm: Raster, cells: np.n
     """(rows, cols) bool: the ``cells`` that, at the DTM's height, exactly one image of
     some matched pair sees over the matched surface (the DTM elsewhere)."""
     surface = Raster(np.where(matched, dsm.data, dtm.data), dsm.transform, dsm.crs)
+    seen = {}  # each image once, however many pairs it is in
+    for camera in {c.name: c for record in pairs for c in _pair_cameras(scene, record)}.values():
+        seen[camera.name] = seen_by_all(surface, cells, camera.center[None] + scene.offset, tolerance=tolerance,
+                                        in_frame=lambda _, xyz, camera=camera: _in_picture(camera, xyz - scene.offset),
+                                        heights=dtm.data)
     out = np.zeros(cells.shape, bool)
     for record in pairs:
-        seen = [seen_by_all(surface, cells, camera.center[None] + scene.offset, tolerance=tolerance,
-                            in_frame=lambda _, xyz, camera=camera: _in_picture(camera, xyz - scene.offset),
-                            heights=dtm.data)
-                for camera in _pair_cameras(scene, record)]
-        out |= seen[0] ^ seen[1]
+        a, b = record["images"]
+        out |= seen[a] ^ seen[b]
     return out
 
 
