@@ -245,3 +245,23 @@ def test_fill_pits_raises_narrow_hollows_only():
     assert raised == changed.sum() and not changed[~(pit | basin)].any()
     flat, none = fill_pits(Raster(plane, terrain.transform, None), width=30.0, depth=2.0)
     assert none == 0 and np.array_equal(flat.data, plane.astype(flat.data.dtype))
+
+
+
+def test_a_roof_at_the_corner_of_the_data_does_not_raise_the_terrain_trend():
+    """A frame-stereo grid is mostly cells outside the data, filled from their nearest
+    measured cell: a roof at a corner of the data is copied over the whole quarter of
+    the grid beyond it, a plateau far wider than any opening, which the trend took for
+    terrain (up to 6.6 m above the flat ground, 2 m at the 95th percentile). The trend's
+    openings look at the measured cells only, where the roof is 16 m across."""
+    from affine import Affine
+
+    from recon3d.core.geo import Units
+    from recon3d.terrain.ground import minimum_surface
+
+    rows, cols = np.indices((100, 150), dtype=np.float64)
+    data = (rows >= 60) & (cols >= 60) & (np.random.default_rng(0).random(rows.shape) < 0.5)
+    roof = (rows >= 60) & (rows < 76) & (cols >= 60) & (cols < 76)
+    zmin = np.where(data, np.where(roof, 15.0, 0.0), np.nan)
+    surface = minimum_surface(zmin, Affine(1, 0, 0, 0, -1, 100), GroundConfig(max_window=30), Units(), {})
+    assert np.abs(surface.trend[data & ~roof]).max() <= 0.05
