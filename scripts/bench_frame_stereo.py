@@ -15,6 +15,7 @@ ground for both, since OpenCV leaves much of a wide-base survey empty).
     .venv/bin/python scripts/bench_frame_stereo.py                 # full size, 9 named + 4 random
     .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
     .venv/bin/python scripts/bench_frame_stereo.py --only nadir_pair --vectors
+    .venv/bin/python scripts/bench_frame_stereo.py --only random_45 random_52 --width 1000
 
 ``--vectors`` also runs recon3d with the truth footprints (eave and ridge heights), the
 spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
@@ -44,7 +45,7 @@ from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.io.colmap import read_scene
 from recon3d.io.geotiff import read_raster
 from recon3d.pipeline.run import run
-from recon3d.synthetic.family import CONFIGURATIONS, family
+from recon3d.synthetic.family import CONFIGURATIONS, family, random_spec
 from recon3d.synthetic.scene import scene_city, write_block_scene
 from recon3d.synthetic.score import _on_grid, _rms, score_stereo, tolerant_error
 from recon3d.terrain.dsm import grid_points
@@ -267,11 +268,20 @@ def print_summary(rows: list[dict]) -> None:
         print(f"{'median':<15}{n:<16}" + "".join(cells))
 
 
+def survey(name: str):
+    """The survey called ``name``: a named configuration, or ``random_N`` (seed N); None if neither."""
+    if name in CONFIGURATIONS:
+        return CONFIGURATIONS[name]
+    prefix, _, seed = name.partition("_")
+    return random_spec(int(seed)) if prefix == "random" and seed.isdigit() else None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--width", type=int, help="image width (px) for every survey, same geometry (default: full size)")
     parser.add_argument("--random", type=int, default=4, help="random surveys after the named ones")
-    parser.add_argument("--only", nargs="*", help="named configurations to run (and no random ones)")
+    parser.add_argument("--only", nargs="*", metavar="SURVEY",
+                        help="surveys to run: named configurations, or random_N for the random survey of seed N")
     parser.add_argument("--vectors", action="store_true", help="also run with the truth footprints as constraints")
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--set", dest="overrides", action="append", metavar="STAGE.KEY=VALUE",
@@ -280,10 +290,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.only, args.width = [QUICK[0]], QUICK[1]
-    unknown = sorted(set(args.only or ()) - set(CONFIGURATIONS))
+    unknown = sorted(n for n in args.only or () if survey(n) is None)
     if unknown:
-        _bench.refuse(f"no survey named {', '.join(unknown)}; known: {', '.join(sorted(CONFIGURATIONS))}")
-    specs = [CONFIGURATIONS[n] for n in args.only] if args.only else family(args.random)
+        _bench.refuse(f"no survey named {', '.join(unknown)}; known: {', '.join(sorted(CONFIGURATIONS))}, "
+                      "random_N (N >= 0)")
+    specs = [survey(n) for n in args.only] if args.only else family(args.random)
     if args.width:
         specs = [s.with_width(args.width) for s in specs]
     rows = []

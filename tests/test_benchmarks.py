@@ -92,3 +92,22 @@ def test_profile_run_prints_the_top_functions_of_each_terrain_stage(tmp_path):
     for stage in ("dsm", "ground", "dtm"):
         block = done.stdout.split(f"== {stage}: ")[1].split("\n== ")[0]
         assert "tottime" in block and len(block.strip().splitlines()) >= 3, block
+
+
+def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
+    """``--only random_N`` runs the family's random survey of seed N, as the closing
+    notes name them; a name that is neither refuses in one line."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_frame_stereo", ROOT / "scripts" / "bench_frame_stereo.py")
+        bench = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(bench)
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    from recon3d.synthetic.family import CONFIGURATIONS, random_spec
+
+    assert bench.survey("random_52") == random_spec(52)
+    assert bench.survey("nadir_pair") == CONFIGURATIONS["nadir_pair"]
+    assert bench.survey("random_") is None and bench.survey("random_x") is None and bench.survey("nadir") is None
+    done = _bench("bench_frame_stereo.py", "--only", "random_x", cwd=tmp_path)
+    assert done.returncode == 1 and "random_N" in done.stderr and "Traceback" not in done.stderr
