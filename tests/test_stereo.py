@@ -223,6 +223,7 @@ def test_hidden_ground_filled_from_a_roof_is_lowered():
     from affine import Affine
 
     from recon3d.core.camera import Camera
+    from recon3d.core.geo import Units
     from recon3d.core.raster import Raster
     from recon3d.stereo.coverage import unseen_guesses
 
@@ -242,14 +243,57 @@ def test_hidden_ground_filled_from_a_roof_is_lowered():
     matched[beside] = matched[missed] = False
     transform = Affine(1.0, 0, 0.0, 0, -1.0, 60.0)
     dsm, dtm = Raster(z, transform), Raster(np.zeros(z.shape), transform)
-    lower = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, tolerance=0.5, min_area=4.0)
+    lower = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, Units(),
+                           tolerance=0.5, min_area=4.0)
     assert lower[beside].all()
     assert not lower[missed].any()
     assert lower.sum() == 12
     # with no matched surface to hide its ground, only the first test judges it: the block hides it at 10 m
     old_rule_only = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, np.zeros(z.shape, bool),
-                                   tolerance=0.5, min_area=4.0)
+                                   Units(), tolerance=0.5, min_area=4.0)
     assert not old_rule_only[beside].any()
+
+
+
+def test_a_notch_in_a_matched_roof_keeps_its_height():
+    """A notch the matcher missed in the east edge of a matched 15 m roof (2 m wide,
+    4 m deep, 0.5 m cells), filled in at 14 m: at the DTM's height the east camera sees
+    it and the block hides it from the west one, just as ground beside a building, so
+    the second visibility test lowered all of it. The inner 3 m lie inside the 1 m
+    closing of the matched roof, a roof hole, and keep their height (the mouth, which
+    no closing reaches, is still lowered); hidden ground west of the block, outside
+    every closing, is still lowered."""
+    from types import SimpleNamespace
+
+    from affine import Affine
+
+    from recon3d.core.camera import Camera
+    from recon3d.core.geo import Units
+    from recon3d.core.raster import Raster
+    from recon3d.stereo.coverage import roof_holes, unseen_guesses
+
+    def nadir(name, x, y, z):
+        R = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[1000.0, 0, 999.5], [0, 1000.0, 999.5], [0, 0, 1]])
+        return Camera(name, K, np.zeros(5), R, -R @ np.array([x, y, z]), 2000, 2000)
+
+    scene = SimpleNamespace(cameras=[nadir("w", -20.0, 30.0, 100.0), nadir("e", 80.0, 30.0, 100.0)],
+                            offset=np.zeros(3))
+    z = np.zeros((120, 120))
+    z[40:80, 40:80] = 15.0
+    matched = np.ones(z.shape, bool)
+    notch, inner = (slice(56, 60), slice(72, 80)), (slice(56, 60), slice(72, 78))
+    beside = (slice(56, 64), slice(34, 40))  # west of the block: hidden from the east camera
+    z[notch], z[beside] = 14.0, 10.0
+    matched[notch] = matched[beside] = False
+    transform = Affine(0.5, 0, 0.0, 0, -0.5, 60.0)
+    dsm, dtm = Raster(z, transform), Raster(np.zeros(z.shape), transform)
+    holes = roof_holes(dsm, dtm, matched, Units())
+    assert holes[inner].all() and not holes[beside].any()
+    lower = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, Units(),
+                           tolerance=0.5, min_area=4.0)
+    assert not lower[inner].any() and lower[notch].sum() == 8
+    assert lower[beside].all()
 
 
 def test_matcher_against_the_exact_disparity(scene):

@@ -775,14 +775,14 @@ def _lower_unseen_guesses(r: Run, dtm: Raster, noise: float) -> None:
     sf, u = r.surface, r.units
     unjudged = sf.unobserved if sf.consistent is None else sf.unobserved & ~sf.consistent
     matched = np.isfinite(sf.dsm.data) & ~sf.filled & ~sf.unobserved
-    lower = coverage.unseen_guesses(r.source.scene, r.source.stereo["pairs"], sf.dsm, dtm, unjudged, matched,
+    lower = coverage.unseen_guesses(r.source.scene, r.source.stereo["pairs"], sf.dsm, dtm, unjudged, matched, u,
                                     tolerance=max(u.height(0.5), 3.0 * noise), min_area=u.area(4.0))
     sf.dsm.data[lower] = dtm.data[lower]
     r.auto["dsm.hidden_ground"] = {
         "value": int(lower.sum()),
         "reason": "cells no pixel matched, filled in above the DTM at a height both images of a pair would have "
                   "seen, or where at the DTM's height one image of a pair sees them over the matched surface and "
-                  "the other does not: set to the DTM",
+                  "the other does not, and not inside a hole of a matched roof: set to the DTM",
     }
 
 

@@ -26,6 +26,7 @@ __all__ = [
     "common_area",
     "common_area_fill",
     "holes_both_saw",
+    "roof_holes",
     "rpc_common_area",
     "seen_by_a_pair",
     "unmatched_in_view",
@@ -54,6 +55,16 @@ MIN_MATCHED_OF_VISIBLE = 70.0
 #: area from 95.2-95.9 % to 98.2-99.0 % on three wide-base surveys (B/H 0.5-1.0), and
 #: from 85.6 % to 89.4 % on a wide-angle slope, at the same tolerant RMS (within 0.03 m).
 NEIGHBOURHOOD = 2.0
+
+#: A roof hole (m): an empty cell within this closing radius of matched cells standing
+#: :data:`ROOF_HOLE_HEIGHT` above the DTM is part of that roof, never hidden ground.
+#: On 25 surveys of the family at 1000 px (six examined: 100-300 cells kept a survey,
+#: most on roofs) the tolerant DSM RMS fell on 22 (by up to 0.04 m; up 0.03 and 0.004 m on two),
+#: footprint completeness rose on 17 (by up to 2 points) for up to 0.6 points of
+#: correctness, and random_52's roof check point, 18 m under its roof, came back onto
+#: it. A 2 m radius also closed courtyards and corners: RMS up on 6 surveys.
+ROOF_HOLE_RADIUS = 1.0
+ROOF_HOLE_HEIGHT = 2.0
 
 
 def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, units: Units) -> np.ndarray:
@@ -197,14 +208,15 @@ def common_area_fill(common: np.ndarray, dsm: Raster, filled: np.ndarray, unobse
     return area
 
 
-def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged: np.ndarray, matched: np.ndarray, *,
-                   tolerance: float, min_area: float) -> np.ndarray:
+def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged: np.ndarray, matched: np.ndarray,
+                   units: Units, *, tolerance: float, min_area: float) -> np.ndarray:
     """(rows, cols) bool: stereo DSM cells filled in above the DTM that are hidden ground,
     to take the DTM.
 
     Cells holding no matched point and no guess the images agree with (``unjudged``) are
     judged, in regions of at least ``min_area``: the few cells the matcher misses on a
-    roof or in a crown are noise, not hidden ground. A judged cell is hidden ground when
+    roof or in a crown are noise, not hidden ground, and neither are the holes in a
+    matched roof (:func:`roof_holes`). A judged cell is hidden ground when
 
     - both images of a matched pair would have seen it at its filled-in height (and so
       matched it), or
@@ -227,8 +239,27 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     regions, n = ndimage.label(unjudged)
     area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * dsm.resolution**2
     judged = unjudged & (np.r_[0.0, area][regions] >= min_area) & (dsm.data > dtm.data + tolerance)
+    judged &= ~roof_holes(dsm, dtm, matched, units)
     seen = seen_by_a_pair(scene, pairs, dsm, judged, tolerance=tolerance)
     return seen | _seen_by_one(scene, pairs, dsm, dtm, judged & ~seen, matched, tolerance=tolerance)
+
+
+def roof_holes(dsm: Raster, dtm: Raster, matched: np.ndarray, units: Units) -> np.ndarray:
+    """(rows, cols) bool: cells inside the morphological closing, by a disc of radius
+    :data:`ROOF_HOLE_RADIUS`, of the matched cells at least :data:`ROOF_HOLE_HEIGHT`
+    above the DTM: gaps in a roof the matcher saw around them.
+
+    Hidden ground lies beside a building, on the side away from one image, so no
+    closing of its roofs reaches it; a roof face the matcher missed between matched
+    ones does look like hidden ground to the visibility tests of
+    :func:`unseen_guesses`, and took the DTM's height before this.
+    """
+    import cv2
+
+    raised = (matched & (dsm.data > dtm.data + units.height(ROOF_HOLE_HEIGHT))).astype(np.uint8)
+    k = 2 * int(round(units.length(ROOF_HOLE_RADIUS) / dsm.resolution)) + 1
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    return cv2.morphologyEx(raised, cv2.MORPH_CLOSE, disc).astype(bool)
 
 
 def _seen_by_one(scene, pairs: list[dict], dsm: Raster, dtm: Raster, cells: np.ndarray, matched: np.ndarray, *,
