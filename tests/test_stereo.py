@@ -211,6 +211,20 @@ def test_seen_by_all_finds_what_the_views_must_have_seen():
     assert not outside.any()  # the second camera's picture does not cover them
 
 
+def _west_east_cameras():
+    """A scene of two nadir cameras 100 m up, 50 m west and east of x = 30 m (2000 px, f 1000 px)."""
+    from types import SimpleNamespace
+
+    from recon3d.core.camera import Camera
+
+    def nadir(name, x, y, z):
+        R = np.diag([1.0, -1.0, -1.0])
+        K = np.array([[1000.0, 0, 999.5], [0, 1000.0, 999.5], [0, 0, 1]])
+        return Camera(name, K, np.zeros(5), R, -R @ np.array([x, y, z]), 2000, 2000)
+
+    return SimpleNamespace(cameras=[nadir("w", -20.0, 30.0, 100.0), nadir("e", 80.0, 30.0, 100.0)], offset=np.zeros(3))
+
+
 def test_hidden_ground_filled_from_a_roof_is_lowered():
     """Beside a matched 15 m block, ground hidden from the east camera (cameras 100 m up,
     50 m to either side) was filled in at 10 m: at that height the block hides it from
@@ -218,22 +232,13 @@ def test_hidden_ground_filled_from_a_roof_is_lowered():
     camera sees its ground, the east camera does not). A part of the roof the matcher
     missed, filled in at 10 m, stands over ground neither camera sees, and keeps its
     height."""
-    from types import SimpleNamespace
-
     from affine import Affine
 
-    from recon3d.core.camera import Camera
     from recon3d.core.geo import Units
     from recon3d.core.raster import Raster
     from recon3d.stereo.coverage import unseen_guesses
 
-    def nadir(name, x, y, z):
-        R = np.diag([1.0, -1.0, -1.0])
-        K = np.array([[1000.0, 0, 999.5], [0, 1000.0, 999.5], [0, 0, 1]])
-        return Camera(name, K, np.zeros(5), R, -R @ np.array([x, y, z]), 2000, 2000)
-
-    scene = SimpleNamespace(cameras=[nadir("w", -20.0, 30.0, 100.0), nadir("e", 80.0, 30.0, 100.0)],
-                            offset=np.zeros(3))
+    scene = _west_east_cameras()
     z = np.zeros((60, 60))
     z[20:40, 20:40] = 15.0
     matched = np.ones(z.shape, bool)
@@ -263,22 +268,13 @@ def test_a_notch_in_a_matched_roof_keeps_its_height():
     closing of the matched roof, a roof hole, and keep their height (the mouth, which
     no closing reaches, is still lowered); hidden ground west of the block, outside
     every closing, is still lowered."""
-    from types import SimpleNamespace
-
     from affine import Affine
 
-    from recon3d.core.camera import Camera
     from recon3d.core.geo import Units
     from recon3d.core.raster import Raster
     from recon3d.stereo.coverage import roof_holes, unseen_guesses
 
-    def nadir(name, x, y, z):
-        R = np.diag([1.0, -1.0, -1.0])
-        K = np.array([[1000.0, 0, 999.5], [0, 1000.0, 999.5], [0, 0, 1]])
-        return Camera(name, K, np.zeros(5), R, -R @ np.array([x, y, z]), 2000, 2000)
-
-    scene = SimpleNamespace(cameras=[nadir("w", -20.0, 30.0, 100.0), nadir("e", 80.0, 30.0, 100.0)],
-                            offset=np.zeros(3))
+    scene = _west_east_cameras()
     z = np.zeros((120, 120))
     z[40:80, 40:80] = 15.0
     matched = np.ones(z.shape, bool)
