@@ -228,10 +228,12 @@ def test_mismatches_at_the_data_edge_do_not_tilt_the_terrain(tmp_path):
     trend's plane fitted to the data alone, 86 % (ground check points 1.33 m RMS);
     with its openings on the data alone too, 98 % and 0.82 m. One of its three roof
     check points sat 18 m low, in a hole of a matched roof taken for hidden ground,
-    until holes in matched roofs were left out of that test (roof RMS 10.6 -> 0.17 m)."""
+    until holes in matched roofs were left out of that test (roof RMS 10.6 -> 0.17 m).
+    SMRF's openings and the pit filling on the data alone too: ground 0.13 m (a roof,
+    then mismatches, had held the terrain 4-8 m off over a corner of the data)."""
     state, score = _run_survey(52, 1000, tmp_path)
     assert score["footprint_correctness"] >= 95.0, score
-    assert score["ground_rms"] <= 1.0, score
+    assert score["ground_rms"] <= 0.3, score
     assert score["roof_rms"] <= 0.5, score
 
 

@@ -248,16 +248,17 @@ def test_fill_pits_raises_narrow_hollows_only():
 
 
 
-def test_a_roof_at_the_corner_of_the_data_does_not_raise_the_terrain_trend():
+def test_a_roof_at_the_corner_of_the_data_does_not_raise_the_terrain():
     """A frame-stereo grid is mostly cells outside the data, filled from their nearest
     measured cell: a roof at a corner of the data is copied over the whole quarter of
     the grid beyond it, a plateau far wider than any opening, which the trend took for
-    terrain (up to 6.6 m above the flat ground, 2 m at the 95th percentile). The trend's
-    openings look at the measured cells only, where the roof is 16 m across."""
+    terrain (up to 6.6 m above the flat ground, 2 m at the 95th percentile) and so did
+    SMRF's openings (the roof itself, and 7.5 m on the ground beside it). Both look at
+    the measured cells only, where the roof is 16 m across."""
     from affine import Affine
 
     from recon3d.core.geo import Units
-    from recon3d.terrain.ground import minimum_surface
+    from recon3d.terrain.ground import minimum_surface, smrf_terrain
 
     rows, cols = np.indices((100, 150), dtype=np.float64)
     data = (rows >= 60) & (cols >= 60) & (np.random.default_rng(0).random(rows.shape) < 0.5)
@@ -265,3 +266,24 @@ def test_a_roof_at_the_corner_of_the_data_does_not_raise_the_terrain_trend():
     zmin = np.where(data, np.where(roof, 15.0, 0.0), np.nan)
     surface = minimum_surface(zmin, Affine(1, 0, 0, 0, -1, 100), GroundConfig(max_window=30), Units(), {})
     assert np.abs(surface.trend[data & ~roof]).max() <= 0.05
+    assert np.abs(smrf_terrain(surface, Units()).data[data]).max() <= 0.05
+
+
+def test_a_pit_at_the_corner_of_the_data_is_filled():
+    """Mismatches 6 m under the ground at a corner of a frame-stereo survey's data,
+    copied by the nearest-cell fill over the quarter of the grid beyond: a basin open
+    to the border, which a closing of the whole grid leaves as it is. The closing of
+    the measured cells raises it to the ground around."""
+    from affine import Affine
+
+    from recon3d.core.raster import Raster
+    from recon3d.terrain.dtm import fill_nearest
+    from recon3d.terrain.ground import fill_pits
+
+    rows, cols = np.indices((100, 150), dtype=np.float64)
+    data = (rows >= 60) & (cols >= 60) & (np.random.default_rng(0).random(rows.shape) < 0.5)
+    pit = data & (rows < 66) & (cols < 66)
+    terrain = Raster(fill_nearest(np.where(data, np.where(pit, -6.0, 0.0), np.nan)), Affine(1, 0, 0, 0, -1, 100))
+    assert fill_pits(terrain, 30.0, 2.0)[1] == 0
+    filled, raised = fill_pits(terrain, 30.0, 2.0, data)
+    assert raised >= pit.sum() and np.abs(filled.data[data]).max() <= 1e-6

@@ -715,7 +715,7 @@ def classify_ground(r: Run) -> None:
         terrain = ground_stage.terrain(surface, method, u)
         if r.stereo == "frame":
             terrain, raised = ground_stage.fill_pits(terrain, u.length(ground_stage.PIT_WIDTH),
-                                                     u.height(ground_stage.PIT_DEPTH))
+                                                     u.height(ground_stage.PIT_DEPTH), surface.measured)
             params["pits_filled"] = {"value": raised, "reason": ground_stage.PIT_REASON}
         noise = surface.noise
         params.update(ground_stage.ground_tolerances(cfg, u, noise)[2])
