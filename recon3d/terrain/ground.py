@@ -389,9 +389,8 @@ def smrf_terrain(s: MinimumSurface, units: Units) -> Raster:
     objects = np.zeros(s.data.shape, bool)
     current = s.data.astype(np.float32)
     radii = range(1, max(1, math.ceil(s.window / s.cell / 2)) + 1)
-    nearest = _nearest_measured(s.measured)
-    for r in radii:
-        opened = _open_measured(current, s.measured, r, nearest).astype(np.float32)
+    for r in radii:  # the openings' values outside the data are never read again: not filled
+        opened = _open_measured(current, s.measured, r, fill=False)
         objects |= (current - opened) > slope * r * s.cell + 2.0 * s.noise
         current = opened
     return s.terrain(s.data, objects)
@@ -616,8 +615,7 @@ def _trend(surface: np.ndarray, measured: np.ndarray, cell: float, window: float
     return plane + ndimage.uniform_filter(rest, size=k + 1, mode="nearest")
 
 
-def _open_measured(z: np.ndarray, measured: np.ndarray, radius: int,
-                   nearest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def _open_measured(z: np.ndarray, measured: np.ndarray, radius: int, *, fill: bool = True) -> np.ndarray:
     """Grey opening of the ``measured`` cells of ``z``, the others filled from the nearest measured cell.
 
     The erosion takes the minimum over the measured cells of each window and the
@@ -630,29 +628,23 @@ def _open_measured(z: np.ndarray, measured: np.ndarray, radius: int,
     measured : (rows, cols) bool
     radius : int
         Half the window, cells.
-    nearest : tuple of two (rows, cols) int arrays, optional
-        :func:`_nearest_measured` of ``measured``, when already computed.
+    fill : bool
+        False: leave the cells without data unfilled (float32, meaningless there), for
+        callers that read the measured cells only.
 
     Returns
     -------
-    (rows, cols) float64
+    (rows, cols) float64, or float32 when not ``fill``
     """
     if not measured.any() or measured.all():
-        return _open(z, radius).astype(np.float64)
+        opened = _open(z, radius)
+        return opened.astype(np.float64) if fill else opened
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
     big = np.finfo(np.float32).max
     eroded = cv2.erode(np.where(measured, z, big).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
     opened = cv2.dilate(np.where(measured, eroded, -big).astype(np.float32), kernel,
                         borderType=cv2.BORDER_REPLICATE)
-    nearest = nearest if nearest is not None else _nearest_measured(measured)
-    return opened[nearest].astype(np.float64)
-
-
-def _nearest_measured(measured: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(row, col) index arrays of each cell's nearest ``measured`` cell; None when every or no cell is."""
-    if not measured.any() or measured.all():
-        return None
-    return tuple(ndimage.distance_transform_edt(~measured, return_distances=False, return_indices=True))
+    return fill_nearest(np.where(measured, opened, np.nan)) if fill else opened
 
 
 def _auto_slope(residual: np.ndarray, cell: float, window: float, units: Units) -> tuple[float, str]:
