@@ -366,10 +366,8 @@ def _close_measured(data: np.ndarray, measured: np.ndarray | None, size: int) ->
     if measured is None or not measured.any() or measured.all():
         return ndimage.grey_closing(fill_nearest(data), size=size, mode="nearest")
     kernel = np.ones((size, size), np.uint8)
-    big = np.finfo(np.float32).max
-    grown = cv2.dilate(np.where(measured, data, -big).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
-    closed = cv2.erode(np.where(measured, grown, big).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
-    return np.where(closed < big / 2, closed.astype(np.float64), -np.inf)
+    closed = _erode_measured(_dilate_measured(data, measured, kernel), measured, kernel)
+    return np.where(closed < _FAR / 2, closed.astype(np.float64), -np.inf)
 
 
 # --------------------------------------------------------------------------- methods
@@ -640,11 +638,22 @@ def _open_measured(z: np.ndarray, measured: np.ndarray, radius: int, *, fill: bo
         opened = _open(z, radius)
         return opened.astype(np.float64) if fill else opened
     kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-    big = np.finfo(np.float32).max
-    eroded = cv2.erode(np.where(measured, z, big).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
-    opened = cv2.dilate(np.where(measured, eroded, -big).astype(np.float32), kernel,
-                        borderType=cv2.BORDER_REPLICATE)
+    opened = _dilate_measured(_erode_measured(z, measured, kernel), measured, kernel)
     return fill_nearest(np.where(measured, opened, np.nan)) if fill else opened
+
+
+#: Stand-in height of the cells without data in the masked erosions and dilations.
+_FAR = np.finfo(np.float32).max
+
+
+def _erode_measured(z: np.ndarray, measured: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """(rows, cols) float32: the minimum of ``z`` over the ``measured`` cells of each window (+_FAR if none)."""
+    return cv2.erode(np.where(measured, z, _FAR).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
+
+
+def _dilate_measured(z: np.ndarray, measured: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """(rows, cols) float32: the maximum of ``z`` over the ``measured`` cells of each window (-_FAR if none)."""
+    return cv2.dilate(np.where(measured, z, -_FAR).astype(np.float32), kernel, borderType=cv2.BORDER_REPLICATE)
 
 
 def _auto_slope(residual: np.ndarray, cell: float, window: float, units: Units) -> tuple[float, str]:
