@@ -66,6 +66,8 @@ def opencv_baseline(folder: Path, cell: float) -> tuple[Raster, float]:
     pad = 0.2 * (hi - lo) + np.array([0.0, 0.0, 30.0])
     xyz = np.concatenate(points)
     xyz = xyz[np.isfinite(xyz).all(axis=1) & (xyz >= lo - pad).all(axis=1) & (xyz <= hi + pad).all(axis=1)]
+    if not len(xyz):
+        raise ValueError("OpenCV's pairs gave no point near the sparse points")
     xyz = xyz + scene.offset
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     transform, shape = grid_for_bounds(lo[0], lo[1], hi[0], hi[1], cell)
@@ -158,7 +160,7 @@ def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = N
                 row["bulldozer"] = peer
     try:
         dsm, seconds = opencv_baseline(folder, cell if "recon3d" in row and "error" not in row["recon3d"] else 0.5)
-    except cv2.error as exc:  # e.g. SGBM refuses a disparity range wider than the rectified image
+    except (cv2.error, ValueError) as exc:  # e.g. SGBM refuses a disparity range wider than the rectified image
         row["opencv"] = {"error": " ".join(str(exc).split())[:300]}
         return row
     score = score_stereo(folder, dsm, city=city)
