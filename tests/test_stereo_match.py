@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import cv2
@@ -391,3 +392,48 @@ def test_photo_consistency_confirms_the_true_disparity_only():
     assert np.median(np.abs(bad[inner])) < 0.3
     holes = np.full(left.shape, np.nan, np.float32)
     assert np.isnan(photo_consistency(left, right, holes)).all()
+
+
+def _row_with_hole(left_d: float, right_d: float, hole: tuple[int, int], width: int = 60) -> np.ndarray:
+    """(5, width) disparities: ``left_d`` left of the hole, ``right_d`` right of it."""
+    row = np.full(width, left_d, np.float32)
+    row[hole[1]:] = right_d
+    row[hole[0]:hole[1]] = np.nan
+    return np.repeat(row[None], 5, axis=0)
+
+
+def test_foreground_beyond_occlusion_is_the_far_end_of_a_hole_wider_than_the_step():
+    from recon3d.stereo.match import OCCLUSION_MARGIN_PX, foreground_beyond_occlusion
+
+    # ground at 10 px, a roof at 18 px: the 8 px next to the ground can be hidden
+    # ground, the rest of the 20 px hole both images see
+    disp = _row_with_hole(10.0, 18.0, (20, 40))
+    best = np.where(np.isfinite(disp), disp, 17.0)  # the rejected matches lean to the roof
+    fg = foreground_beyond_occlusion(disp, best, np.where(np.isfinite(disp), disp, 10.0))
+    first = 20 + int(8 + OCCLUSION_MARGIN_PX)
+    assert fg[:, first:40].all() and not fg[:, :first].any() and not fg[:, 40:].any()
+    # rejected matches nearer the ground: the hole stays background
+    assert not foreground_beyond_occlusion(disp, np.where(np.isfinite(disp), disp, 11.0), disp).any()
+    # a hole no wider than the step is all occlusion
+    narrow = _row_with_hole(10.0, 18.0, (20, 28))
+    assert not foreground_beyond_occlusion(narrow, np.where(np.isfinite(narrow), narrow, 17.0), narrow).any()
+    # a street between two roofs: its left side stands above the background around
+    street = _row_with_hole(18.0, 19.0, (20, 40))
+    assert not foreground_beyond_occlusion(street, np.full_like(street, 19.0), np.full_like(street, 10.0)).any()
+
+
+def test_match_fills_the_far_end_of_a_wide_hole_from_the_surface_beside_it():
+    """End to end: a step the matcher cannot match on one side of a raised block."""
+    rng = np.random.default_rng(3)
+    h, w, d_ground, d_roof = 120, 200, 4, 20
+    right = rng.uniform(0, 255, (h, w)).astype(np.float32)
+    left = np.roll(right, d_ground, axis=1)
+    left[30:90, 100:160] = np.roll(right, d_roof, axis=1)[30:90, 100:160]  # the raised block
+    left[30:90, 100:130] = rng.uniform(0, 255, (60, 30))  # its left half unmatchable
+    params = MatchParams(min_disparity=0, max_disparity=32, fill_foreground=True)
+    with_fg = match(left, right, params)
+    without = match(left, right, dataclasses.replace(params, fill_foreground=False))
+    core = np.s_[40:80, 118:128]  # beyond the 16 px occlusion width from the ground side
+    assert np.median(without.disparity[core]) < 8  # background fill: the ground
+    assert with_fg.foreground[core].mean() > 0.5
+    assert np.median(with_fg.disparity[core]) > 14  # taken for the block

@@ -144,7 +144,7 @@ class Surface:
     dsm: Raster
     filled: np.ndarray  # cells holding no point at all, filled from their rim
     unobserved: np.ndarray | None = None  # stereo: cells holding no observed point
-    consistent: np.ndarray | None = None  # stereo: cells holding a guess the images agree with
+    consistent: np.ndarray | None = None  # stereo: cells holding a guess with evidence (images agree, or foreground)
     common_area: np.ndarray | None = None  # stereo: cells both images of a matched pair see
     points: np.ndarray | None = None  # points per cell
     first_returns: int = 0

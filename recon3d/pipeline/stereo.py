@@ -197,13 +197,18 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
     if bounds is not None:
         low, high, weight = bounds(pair)
     slant, slant_reason = _slant(pair, points, config)
-    params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine, slant=slant)
+    # frame pairs: a roof face foreshortened in one view is missed beside the ground its
+    # building hides; see MatchParams.fill_foreground
+    params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine, slant=slant,
+                         fill_foreground=True)
     result = match(left, right, params, guide=pair.color, low=low, high=high, weight=weight)
     # A filled-in disparity is a guess, even where the images agree with it: beside walls
     # such agreement is often chance, and carried the roof onto the street in 62 % of the
     # spilled cells of a rendered survey. Agreement still tells a steep or shadowed roof
     # face the matcher missed from a courtyard it could not see (see make_dtm).
     consistent = result.filled & (photo_consistency(left, right, result.disparity) >= 0.4)
+    if result.foreground is not None:  # beyond an occlusion's width: no hidden ground
+        consistent |= result.foreground
     cloud = triangulate(
         pair, result.disparity, result.confidence, min_angle_deg=config.min_angle,
         guessed=result.filled, consistent=consistent,
@@ -223,7 +228,8 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
         "disparity_range": {"value": [dmin, dmax], "reason": pair.range_reason},
         "matched_percent": round(100.0 * float(matched.sum()) / max(1, int(overlap.sum())), 2),
         "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[overlap]))), 1) if overlap.any() else 0.0,
-        "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine") if k in result.params},
+        "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine", "foreground_percent")
+                     if k in result.params},
         "slant": {"value": slant, "reason": slant_reason},
         "self_check": {k: v for k, v in check.items() if k != "uncovered"},
         "points": len(cloud),

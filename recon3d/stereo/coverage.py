@@ -213,7 +213,8 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     """(rows, cols) bool: stereo DSM cells filled in above the DTM that are hidden ground,
     to take the DTM.
 
-    Cells holding no matched point and no guess the images agree with (``unjudged``) are
+    Cells holding no matched point and no guess with evidence for it (``unjudged``: the
+    images agree with it, or it lies beyond an occlusion's width beside a surface) are
     judged, in regions of at least ``min_area``: the few cells the matcher misses on a
     roof or in a crown are noise, not hidden ground, and neither are the holes in a
     matched roof (:func:`roof_holes`). A judged cell is hidden ground when

@@ -29,7 +29,9 @@ def triangulate(
     guessed : (H, W) bool, optional
         Pixels whose disparity is a guess: filled in rather than matched.
     consistent : (H, W) bool, optional
-        Guessed pixels the images agree with (photo-consistent).
+        Guessed pixels with evidence for them: the images agree with the guess
+        (photo-consistent), or the pixel lies beyond an occlusion's width beside the
+        surface it was filled from (:func:`recon3d.stereo.match.foreground_beyond_occlusion`).
 
     Returns
     -------
@@ -38,7 +40,7 @@ def triangulate(
         ``blue`` (uint16), ``quality`` (confidence scaled by the intersection angle's
         depth precision, in [0, 1]), ``intersection_angle`` (degrees), ``observed``
         (uint8, 0 for points of guessed pixels; all 1 without ``guessed``) and, with
-        ``consistent``, ``consistent`` (uint8, 1 for guesses the images agree with).
+        ``consistent``, ``consistent`` (uint8, 1 for guesses with evidence for them).
     """
     valid = np.isfinite(disparity) & pair.valid_left
     rows, cols = np.nonzero(valid)

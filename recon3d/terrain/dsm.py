@@ -194,8 +194,10 @@ def grid_stereo(
     stereo (``per_source="max"``) takes the higher of the two middle values, not their
     mean: two pairs that disagree (a roof, and a long-base pair's match cut short by its
     image edge, below the ground) would average to a height neither saw. A cell no
-    source observed takes its highest guessed point (a disparity filled in, not
-    confirmed by the images): a guess never outweighs an observation.
+    source observed takes the median over the sources of each one's highest guessed
+    point (a disparity filled in, not confirmed by the images): a guess never outweighs
+    an observation, and one pair's guess of a raised surface is outvoted by two pairs
+    that took the cell for ground.
 
     Parameters
     ----------
@@ -219,15 +221,24 @@ def grid_stereo(
         NaN in cells without points.
     """
     rows, cols = shape
-    out = grid_points(xyz, transform, shape, reducer="max", origin=origin)
     col = _floor_index(xyz[:, 0], transform.c, transform.a) - origin[1]
     row = _floor_index(xyz[:, 1], transform.f, transform.e) - origin[0]
-    use = np.asarray(observed, bool) & (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-    cell = (row * cols + col)[use]
-    src = np.zeros(len(cell), np.int64) if source is None else np.asarray(source, np.int64)[use]
-    z = xyz[use, 2]
+    inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    src = np.zeros(len(xyz), np.int64) if source is None else np.asarray(source, np.int64)
+    observed = np.asarray(observed, bool)
+    out = np.full(rows * cols, np.nan)
+    # observations overwrite guesses; a source's guesses count by their highest point
+    for use, reduce in ((inside & ~observed, "max"), (inside & observed, per_source)):
+        cell, z = _median_over_sources((row * cols + col)[use], src[use], xyz[use, 2], reduce)
+        out[cell] = z
+    return out.reshape(shape)
+
+
+def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, per_source: str):
+    """(cells, heights): each source's highest (or median) point per cell, then the
+    median over the sources (of an even count, for ``"max"``, the higher middle value)."""
     if not len(z):
-        return out
+        return cell, z
     order = np.lexsort((z, src, cell))  # by cell, then source, then height
     cell, src, z = cell[order], src[order], z[order]
     first = np.r_[0, np.flatnonzero((cell[1:] != cell[:-1]) | (src[1:] != src[:-1])) + 1]
@@ -245,8 +256,7 @@ def grid_stereo(
         median = z[start + count // 2]
     else:
         median = 0.5 * (z[start + (count - 1) // 2] + z[start + count // 2])
-    out.reshape(-1)[cell[start]] = median
-    return out
+    return cell[start], median
 
 
 def fill_small_holes(
