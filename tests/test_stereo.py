@@ -230,8 +230,7 @@ def test_hidden_ground_filled_from_a_roof_is_lowered():
     50 m to either side) was filled in at 10 m: at that height the block hides it from
     the east camera too, so only the second test of unseen_guesses finds it (the west
     camera sees its ground, the east camera does not). A part of the roof the matcher
-    missed, filled in at 10 m, stands over ground neither camera sees, and keeps its
-    height."""
+    missed, filled in at 10 m, is a hole in the matched roof and keeps its height."""
     from affine import Affine
 
     from recon3d.core.geo import Units
@@ -258,6 +257,40 @@ def test_hidden_ground_filled_from_a_roof_is_lowered():
                                    Units(), tolerance=0.5, min_area=4.0)
     assert not old_rule_only[beside].any()
 
+
+
+def test_a_narrow_street_neither_image_sees_is_lowered():
+    """A 4 m street between two matched 15 m blocks, filled in at 6 m: at that height
+    and at the DTM's the west block hides it from the west camera and the east block
+    from the east one (both frame it), so only the third test of unseen_guesses judges
+    it: ground between surfaces, open at its ends, it takes the DTM. Closed at both ends
+    by matched roof, the same gap is enclosed by a building, as a part of a roof the
+    matcher missed is, and keeps its height."""
+    from affine import Affine
+
+    from recon3d.core.geo import Units
+    from recon3d.core.raster import Raster
+    from recon3d.stereo.coverage import unseen_guesses
+
+    scene = _west_east_cameras()
+    street = (slice(12, 23), slice(28, 32))
+
+    def lowered(closed: bool) -> np.ndarray:
+        z = np.zeros((60, 60))
+        z[10:25, 14:28] = z[10:25, 32:46] = 15.0
+        if closed:
+            z[10:12, 28:32] = z[23:25, 28:32] = 15.0
+        z[street] = 6.0
+        matched = np.ones(z.shape, bool)
+        matched[street] = False
+        transform = Affine(1.0, 0, 0.0, 0, -1.0, 60.0)
+        dsm, dtm = Raster(z, transform), Raster(np.zeros(z.shape), transform)
+        return unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, Units(),
+                              tolerance=0.5, min_area=4.0)
+
+    lower = lowered(closed=False)
+    assert lower[street].all() and lower.sum() == 44
+    assert not lowered(closed=True).any()
 
 
 def test_a_notch_in_a_matched_roof_keeps_its_height():

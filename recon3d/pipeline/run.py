@@ -782,7 +782,8 @@ def _lower_unseen_guesses(r: Run, dtm: Raster, noise: float) -> None:
         "value": int(lower.sum()),
         "reason": "cells no pixel matched, filled in above the DTM at a height both images of a pair would have "
                   "seen, or where at the DTM's height one image of a pair sees them over the matched surface and "
-                  "the other does not, and not inside a hole of a matched roof: set to the DTM",
+                  "the other does not, or neither does although both frame them and no matched building encloses "
+                  "them (a narrow street), and not inside a hole of a matched roof: set to the DTM",
     }
 
 
