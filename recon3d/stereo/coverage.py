@@ -246,7 +246,7 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * dsm.resolution**2
     judged = unjudged & (np.r_[0.0, area][regions] >= min_area) & (dsm.data > dtm.data + tolerance)
     judged &= ~roof_holes(dsm, dtm, matched, units)
-    raised = matched & (dsm.data > dtm.data + units.height(ROOF_HOLE_HEIGHT))
+    raised = _raised(dsm, dtm, matched, units)
     enclosed = ndimage.binary_fill_holes(raised) & ~raised
     seen = seen_by_a_pair(scene, pairs, dsm, judged, tolerance=tolerance)
     return seen | _hidden_at_ground(scene, pairs, dsm, dtm, judged & ~seen, matched, ~enclosed, tolerance=tolerance)
@@ -264,10 +264,15 @@ def roof_holes(dsm: Raster, dtm: Raster, matched: np.ndarray, units: Units) -> n
     """
     import cv2
 
-    raised = (matched & (dsm.data > dtm.data + units.height(ROOF_HOLE_HEIGHT))).astype(np.uint8)
+    raised = _raised(dsm, dtm, matched, units).astype(np.uint8)
     k = 2 * int(round(units.length(ROOF_HOLE_RADIUS) / dsm.resolution)) + 1
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     return cv2.morphologyEx(raised, cv2.MORPH_CLOSE, disc).astype(bool)
+
+
+def _raised(dsm: Raster, dtm: Raster, matched: np.ndarray, units: Units) -> np.ndarray:
+    """(rows, cols) bool: matched cells at least :data:`ROOF_HOLE_HEIGHT` above the DTM."""
+    return matched & (dsm.data > dtm.data + units.height(ROOF_HOLE_HEIGHT))
 
 
 def _hidden_at_ground(scene, pairs: list[dict], dsm: Raster, dtm: Raster, cells: np.ndarray, matched: np.ndarray,

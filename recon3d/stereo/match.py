@@ -479,8 +479,8 @@ def match(
     full = _fill_background(disp)
     foreground = None
     if params.fill_foreground:
-        foreground = foreground_beyond_occlusion(disp, best, full)
-        full[foreground] = _foreground_heights(disp, best)[foreground]
+        foreground, heights = _foreground(disp, best, full)
+        full[foreground] = heights[foreground]
     filled = ~matched & np.isfinite(full)
     if params.median_size > 1:
         full = _median(full, params.median_size)
@@ -903,18 +903,28 @@ def _remove_speckles(disp: np.ndarray, size: int, max_step: float, dmin: int) ->
     disp[buf == _SGBM_INVALID] = np.nan
 
 
-def _nearest_along_rows(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest finite value to the left and to the right of every pixel (NaN if none)."""
-    h, w = d.shape
-    valid = np.isfinite(d)
+def _nearest_index_along_rows(valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Column of the nearest valid pixel to the left (-1 if none) and to the right (W if
+    none) of every pixel; a valid pixel's own column."""
+    w = valid.shape[1]
     cols = np.arange(w)[None, :]
     left_i = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
     rev = np.maximum.accumulate(np.where(valid[:, ::-1], cols, -1), axis=1)  # in flipped columns
-    right_i = np.where(rev >= 0, w - 1 - rev, w)[:, ::-1]
-    rows = np.arange(h)[:, None]
-    lv = np.where(left_i >= 0, d[rows, np.clip(left_i, 0, w - 1)], np.nan)
-    rv = np.where(right_i <= w - 1, d[rows, np.clip(right_i, 0, w - 1)], np.nan)
-    return lv.astype(np.float32), rv.astype(np.float32)
+    return left_i, np.where(rev >= 0, w - 1 - rev, w)[:, ::-1]
+
+
+def _take_along_rows(d: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """(H, W) float32: ``d`` at each row's column ``index``, NaN where it is outside."""
+    w = d.shape[1]
+    inside = (index >= 0) & (index <= w - 1)
+    value = np.take_along_axis(d, np.clip(index, 0, w - 1), axis=1)
+    return np.where(inside, value, np.nan).astype(np.float32)
+
+
+def _nearest_along_rows(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest finite value to the left and to the right of every pixel (NaN if none)."""
+    left_i, right_i = _nearest_index_along_rows(np.isfinite(d))
+    return _take_along_rows(d, left_i), _take_along_rows(d, right_i)
 
 
 #: Pixels a hole may exceed the occlusion's width by and still be all occlusion
@@ -946,34 +956,26 @@ def foreground_beyond_occlusion(disp: np.ndarray, best: np.ndarray, background: 
         side stands above it lies between two raised surfaces (a street between roofs)
         and is left to the background.
     """
-    h, w = disp.shape
-    valid = np.isfinite(disp)
-    cols = np.arange(w)[None, :]
-    left_i = np.maximum.accumulate(np.where(valid, cols, -1), axis=1)
-    rev = np.maximum.accumulate(np.where(valid[:, ::-1], cols, -1), axis=1)
-    right_i = np.where(rev >= 0, w - 1 - rev, w)[:, ::-1]
-    rows = np.arange(h)[:, None]
-    inner = ~valid & (left_i >= 0) & (right_i <= w - 1)
-    with np.errstate(invalid="ignore"):
-        left_value = np.where(inner, disp[rows, np.clip(left_i, 0, w - 1)], np.nan)
-        right_value = np.where(inner, disp[rows, np.clip(right_i, 0, w - 1)], np.nan)
-        step = right_value - left_value
-        beyond = (step > 0) & (cols - left_i > step + OCCLUSION_MARGIN_PX)
-        nearer_right = np.abs(best - right_value) < np.abs(best - left_value)
-        return inner & beyond & nearer_right & (left_value <= background + 1.0)
+    return _foreground(disp, best, background)[0]
 
 
-def _foreground_heights(disp: np.ndarray, best: np.ndarray) -> np.ndarray:
-    """(H, W) disparities for the foreground of :func:`foreground_beyond_occlusion`: each
-    pixel's best match, kept between the disparities on the two sides of its hole.
+def _foreground(disp: np.ndarray, best: np.ndarray, background: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`foreground_beyond_occlusion`'s mask, and its pixels' disparities: each
+    one's best match, kept between the disparities on the two sides of its hole.
 
     (A ramp from the left side's disparity, one occlusion's width into the hole, up to
     the right side's, against guesses that put points beyond the wall, undid most of
     the gain on the rendered surveys: roof completeness fell back to that of the
     background fill.)"""
-    lv, rv = _nearest_along_rows(disp)
+    left_i, right_i = _nearest_index_along_rows(np.isfinite(disp))
+    left, right = _take_along_rows(disp, left_i), _take_along_rows(disp, right_i)
+    cols = np.arange(disp.shape[1])[None, :]
     with np.errstate(invalid="ignore"):
-        return np.clip(best, lv, rv).astype(np.float32)
+        step = right - left  # 0 on valid pixels, NaN where a hole has no side
+        beyond = (step > 0) & (cols - left_i > step + OCCLUSION_MARGIN_PX)
+        nearer_right = np.abs(best - right) < np.abs(best - left)
+        mask = beyond & nearer_right & (left <= background + 1.0)
+        return mask, np.clip(best, left, right).astype(np.float32)
 
 
 def _fill_background(disp: np.ndarray) -> np.ndarray:
