@@ -58,6 +58,24 @@ def test_every_common_sparse_point_lies_in_both_rectified_images(survey):
     assert n >= 1
 
 
+def test_the_range_reaches_roofs_the_pair_sparse_points_miss(survey):
+    """A pair whose sparse points sample only the lower half of the scene (the ground, low
+    roofs) still searches the disparities of the higher half, given the block's top."""
+    _, scene = survey
+    top = float(scene.sparse[:, 2].max())
+    for i, j, _, points in _pairs(scene):
+        low = points[points[:, 2] <= np.median(points[:, 2])]
+        if len(low) < 3:
+            continue
+        a, b = scene.cameras[i], scene.cameras[j]
+        images = [cv2.imread(str(c.image_path)) for c in (a, b)]
+        pair = rectify_pair(a, b, *images, low, top=top)
+        uvl, uvr = pair.project(points)
+        d = uvl[:, 0] - uvr[:, 0]
+        lo, hi = pair.disparity_range
+        assert (d >= lo).all() and (d < hi).all(), (pair.name, d.max(), hi)
+
+
 def test_exact_correspondences_triangulate_to_the_world_points(survey):
     """Pixels of the first image of each pair with their rendered surface point, matched
     exactly into the second through its camera: rectified, they share a row; triangulated,

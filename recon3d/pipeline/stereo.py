@@ -187,7 +187,7 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
     a, b = scene.cameras[i], scene.cameras[j]
     pair = rectify_pair(
         a, b, _read(a.image_path), _read(b.image_path), points,
-        max_parallax=config.max_parallax, max_disparities=config.max_disparities,
+        max_parallax=config.max_parallax, max_disparities=config.max_disparities, top=_block_top(scene),
     )
     dmin, dmax = pair.disparity_range
     # black borders outside the photos are nodata, not texture to match
@@ -247,6 +247,13 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
 SLANT_BASE_TO_HEIGHT = 0.45
 #: Disparity gradient of the sheared windows when chosen automatically.
 SLANT = 0.5
+
+
+def _block_top(scene: StereoScene) -> float:
+    """Height (model z) of the block's highest sparse points (99.5th percentile): every
+    pair searches up to it, though its own sparse points may sample no tall roof."""
+    z = scene.sparse[:, 2]
+    return float(np.percentile(z, 99.5)) if len(z) >= 50 else float(z.max())
 
 
 def _slant(pair: RectifiedPair, points: np.ndarray, config: StereoConfig) -> tuple[float, str]:

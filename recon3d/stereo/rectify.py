@@ -48,6 +48,10 @@ MAX_PARALLAX_PX = 1.0
 
 #: Share of the sparse disparity spread, and pixels, added on both sides of the range.
 RANGE_MARGIN = (0.15, 8.0)
+#: Share of the pair's sparse height span added above the highest sparse point when
+#: the range is raised to cover a tower taller than every sampled roof (see
+#: :func:`rectify_pair`'s ``top``).
+TOP_MARGIN = 0.25
 
 
 @dataclass
@@ -311,6 +315,7 @@ def rectify_pair(
     *,
     max_parallax: float = MAX_PARALLAX_PX,
     max_disparities: int = 384,
+    top: float | None = None,
 ) -> RectifiedPair:
     """Undistort and rectify two images from their known orientation.
 
@@ -329,6 +334,14 @@ def rectify_pair(
         Largest median residual vertical parallax of SIFT matches (pixels).
     max_disparities : int
         Widest disparity range; a wider one is cut around the points' median.
+    top : float, optional
+        Height (model z, up) the scene's surface may reach, such as the highest sparse
+        point of the whole block. The range then also covers every point raised to
+        ``max(top, highest of points) + TOP_MARGIN * their height span``: a sparse
+        model samples roofs by chance, and a tower taller than every sampled roof of
+        the pair lies beyond their disparities (on random surveys of the synthetic
+        family, 0.6-3 % of a pair's pixels, whole buildings matched as ground). The
+        raised part is cut first when the range is too wide.
 
     Raises
     ------
@@ -346,6 +359,8 @@ def rectify_pair(
         raise InputError(f"{name}: fewer than 3 sparse points seen by both; cannot bound the disparities")
     raw = focal * baseline / ((points - a.center) @ rotation[2])  # disparity with principal points at 0
     lo, hi, reason = _widened_range(raw, max_disparities, name)
+    if top is not None:
+        hi, reason = _raised_top(points, a.center, rotation, focal * baseline, top, lo, hi, max_disparities, reason)
     left_area = _rectified_outline(a, rotation, focal)
     right_area = _rectified_outline(b, rotation, focal)
     reach = shapely.convex_hull(shapely.union(
@@ -426,6 +441,26 @@ def _widened_range(raw: np.ndarray, max_count: int, name: str) -> tuple[float, f
         reason += f"; capped at {max_count} disparities"
         log.warning("%s: disparity range capped at %d (stereo.max_disparities)", name, max_count)
     return float(lo), float(hi), reason
+
+
+def _raised_top(points, center, rotation, fb: float, top: float, lo: float, hi: float, max_count: int,
+                reason: str) -> tuple[float, str]:
+    """Upper end of the range (raw disparity) raised to cover the points lifted to the
+    scene's top plus :data:`TOP_MARGIN` of their height span, within ``max_count``."""
+    z = points[:, 2]
+    z_lo, z_hi = np.percentile(z, [0.5, 99.5]) if len(z) >= 50 else (z.min(), z.max())
+    ceiling = max(float(top), float(z_hi)) + TOP_MARGIN * float(z_hi - z_lo)
+    raised = points.copy()
+    raised[:, 2] = np.maximum(z, ceiling)
+    depth = (raised - center) @ rotation[2]
+    depth = depth[depth > 0]
+    if not depth.size:
+        return hi, reason
+    reach = min(float((fb / depth).max()), lo + max_count)
+    if reach <= hi:
+        return hi, reason
+    return reach, reason + (f"; raised by {reach - hi:.0f} px to reach surfaces {ceiling - z_hi:.1f} above the "
+                            "pair's highest sparse point (the block's highest, plus a margin)")
 
 
 def _remap(image: np.ndarray, cam: Camera, rotation, focal, cx, cy, size):
