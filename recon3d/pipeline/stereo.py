@@ -82,13 +82,13 @@ def dense_cloud(
         raise InputError(f"{scene.folder}: dense matching produced no point")
     gsd = _ground_sample_distance(scene)
     cloud = fuse([c for c in clouds if len(c)], cell=gsd, rough=_foliage)
+    cloud = PointCloud(cloud.xyz + scene.offset, cloud.attributes, scene.crs)
+    cloud = _without_points_under_tie_points(cloud, scene, config, units or Units(), report)
     kept = np.bincount(cloud.attributes["point_source_id"], minlength=len(clouds) + 1)
-    for record in report["pairs"]:
+    for record in report["pairs"]:  # what each pair gives the cloud the run goes on with
         n = int(kept[record["point_source_id"]])
         record["points_fused"] = n
         record["fused_share_percent"] = round(100.0 * n / max(1, len(cloud)), 2)
-    cloud = PointCloud(cloud.xyz + scene.offset, cloud.attributes, scene.crs)
-    cloud = _without_points_under_tie_points(cloud, scene, config, units or Units(), report)
     report["pair_count"] = len(pairs)
     report["ground_sample_distance"] = round(gsd, 4)
     report["points"] = len(cloud)
