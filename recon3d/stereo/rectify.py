@@ -459,8 +459,8 @@ def _raised_top(points, center, rotation, fb: float, top: float, lo: float, hi: 
     reach = min(float((fb / depth).max()), lo + max_count)
     if reach <= hi:
         return hi, reason
-    return reach, reason + (f"; raised by {reach - hi:.0f} px to reach surfaces {ceiling - z_hi:.1f} above the "
-                            "pair's highest sparse point (the block's highest, plus a margin)")
+    return reach, reason + (f"; raised by {reach - hi:.0f} px to reach surfaces {ceiling - z_hi:.1f} (CRS units) "
+                            "above the pair's highest sparse point (the block's highest, plus a margin)")
 
 
 def _remap(image: np.ndarray, cam: Camera, rotation, focal, cx, cy, size):
