@@ -16,7 +16,7 @@ from recon3d.errors import InputError
 from recon3d.io.colmap import StereoScene
 from recon3d.stereo.check import check_pair, tie_ground, tie_point_radius, under_tie_points, verdict
 from recon3d.stereo.fuse import fuse
-from recon3d.stereo.rectify import RectifiedPair, rectify_pair, select_pairs
+from recon3d.stereo.rectify import RectifiedPair, rectify_pair, sample_extremes, select_pairs
 from recon3d.stereo.triangulate import triangulate
 
 log = logging.getLogger(__name__)
@@ -69,11 +69,13 @@ def dense_cloud(
     if bounds is not None:
         report["constraints"] = getattr(bounds, "sources", {})
     clouds = []
+    # every pair searches up to the block's highest sparse points, though its own may sample no tall roof
+    top = sample_extremes(scene.sparse[:, 2])[1]
     for k, (i, j) in enumerate(pairs):
         if progress:
             progress(f"pair {k + 1}/{len(pairs)}")
         common = scene.seen[i] & scene.seen[j]
-        cloud, record = _match_pair(scene, i, j, scene.sparse[common], config, bounds, warn)
+        cloud, record = _match_pair(scene, i, j, scene.sparse[common], top, config, bounds, warn)
         source = len(report["pairs"]) + 1  # the pair's id in cloud.laz
         cloud.attributes["point_source_id"] = np.full(len(cloud), source, np.uint16)
         report["pairs"].append({"point_source_id": source, **record})
@@ -180,14 +182,14 @@ def _tallest_object(world: np.ndarray, dem, config: StereoConfig, units) -> tupl
     return float(above.max()) + units.height(10.0), f"highest sparse point {above.max():.1f} above the DEM, plus 10 m"
 
 
-def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, dict]:
-    """Rectify, match, triangulate and self-check one pair."""
+def _match_pair(scene, i, j, points, top, config, bounds, warn) -> tuple[PointCloud, dict]:
+    """Rectify, match, triangulate and self-check one pair (``top``: see :func:`rectify_pair`)."""
     from recon3d.stereo.match import MatchParams, match, photo_consistency
 
     a, b = scene.cameras[i], scene.cameras[j]
     pair = rectify_pair(
         a, b, _read(a.image_path), _read(b.image_path), points,
-        max_parallax=config.max_parallax, max_disparities=config.max_disparities, top=_block_top(scene),
+        max_parallax=config.max_parallax, max_disparities=config.max_disparities, top=top,
     )
     dmin, dmax = pair.disparity_range
     # black borders outside the photos are nodata, not texture to match
@@ -247,13 +249,6 @@ def _match_pair(scene, i, j, points, config, bounds, warn) -> tuple[PointCloud, 
 SLANT_BASE_TO_HEIGHT = 0.45
 #: Disparity gradient of the sheared windows when chosen automatically.
 SLANT = 0.5
-
-
-def _block_top(scene: StereoScene) -> float:
-    """Height (model z) of the block's highest sparse points (99.5th percentile): every
-    pair searches up to it, though its own sparse points may sample no tall roof."""
-    z = scene.sparse[:, 2]
-    return float(np.percentile(z, 99.5)) if len(z) >= 50 else float(z.max())
 
 
 def _slant(pair: RectifiedPair, points: np.ndarray, config: StereoConfig) -> tuple[float, str]:

@@ -41,7 +41,7 @@ from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAX_PARALLAX_PX", "RectifiedPair", "measure_parallax", "rectify_pair", "select_pairs"]
+__all__ = ["MAX_PARALLAX_PX", "RectifiedPair", "measure_parallax", "rectify_pair", "sample_extremes", "select_pairs"]
 
 #: Largest residual vertical parallax (median, pixels) accepted after rectification.
 MAX_PARALLAX_PX = 1.0
@@ -336,7 +336,7 @@ def rectify_pair(
         Widest disparity range; a wider one is cut around the points' median.
     top : float, optional
         Height (model z, up) the scene's surface may reach, such as the highest sparse
-        point of the whole block. The range then also covers every point raised to
+        point of the whole block (:func:`sample_extremes`). The range then also covers every point raised to
         ``max(top, highest of points) + TOP_MARGIN * their height span``: a sparse
         model samples roofs by chance, and a tower taller than every sampled roof of
         the pair lies beyond their disparities (on random surveys of the synthetic
@@ -429,9 +429,17 @@ def _rectified_outline(cam: Camera, rotation: np.ndarray, focal: float, n: int =
     return shapely.Polygon(uv).buffer(0)
 
 
+def sample_extremes(values: np.ndarray) -> tuple[float, float]:
+    """Lowest and highest of a sparse sample, (n,) float: its 0.5th and 99.5th
+    percentiles from 50 values on (one stray point does not set them), else its min
+    and max."""
+    lo, hi = np.percentile(values, [0.5, 99.5]) if len(values) >= 50 else (values.min(), values.max())
+    return float(lo), float(hi)
+
+
 def _widened_range(raw: np.ndarray, max_count: int, name: str) -> tuple[float, float, str]:
     """Disparity range (raw, principal points at 0) from the points' disparities."""
-    lo, hi = (np.percentile(raw, [0.5, 99.5]) if len(raw) >= 50 else (raw.min(), raw.max()))
+    lo, hi = sample_extremes(raw)
     margin = RANGE_MARGIN[0] * (hi - lo) + RANGE_MARGIN[1]
     reason = f"{len(raw)} sparse points: disparities spread {hi - lo:.1f} px, widened by {margin:.1f} px on each side"
     lo, hi = lo - margin, hi + margin
@@ -448,8 +456,8 @@ def _raised_top(points, center, rotation, fb: float, top: float, lo: float, hi: 
     """Upper end of the range (raw disparity) raised to cover the points lifted to the
     scene's top plus :data:`TOP_MARGIN` of their height span, within ``max_count``."""
     z = points[:, 2]
-    z_lo, z_hi = np.percentile(z, [0.5, 99.5]) if len(z) >= 50 else (z.min(), z.max())
-    ceiling = max(float(top), float(z_hi)) + TOP_MARGIN * float(z_hi - z_lo)
+    z_lo, z_hi = sample_extremes(z)
+    ceiling = max(top, z_hi) + TOP_MARGIN * (z_hi - z_lo)
     raised = points.copy()
     raised[:, 2] = np.maximum(z, ceiling)
     depth = (raised - center) @ rotation[2]
