@@ -133,6 +133,23 @@ def test_blob_off_planes_is_vegetation():
     assert detect.find_blobs(_raster(ndsm), none, CFG, UNITS).kept.sum() == 2  # without planarity: two buildings
 
 
+def test_with_colours_planarity_alone_rejects_no_blob():
+    """A survey with colours tells crowns by their colour: a smooth blob with no
+    vegetation point is a roof however noisy its points about their planes (a stereo
+    cloud's gables), and one with a few vegetation points is still judged by planarity."""
+    ndsm = np.zeros((80, 80))
+    ndsm[10:30, 10:30] = 6.0
+    ndsm[45:70, 45:70] = 9.0
+    planar = np.ones(ndsm.shape)
+    planar[45:70, 45:70] = 0.3
+    none = np.zeros(ndsm.shape, np.float32)
+    assert detect.find_blobs(_raster(ndsm), none, CFG, UNITS, planar=planar, colour=True).kept.sum() == 2
+    some = none.copy()
+    some[45:70, 45:70] = 0.02  # green points in the canopy
+    blobs = detect.find_blobs(_raster(ndsm), some, CFG, UNITS, planar=planar, colour=True)
+    assert blobs.kept.sum() == 1 and blobs.reason.count("vegetation") == 1
+
+
 def test_points_above_the_roof_are_not_building():
     grid = _raster(np.zeros((40, 40)))
     labels = np.zeros((40, 40), np.int32)

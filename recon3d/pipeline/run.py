@@ -866,7 +866,8 @@ def find_buildings(r: Run) -> None:
         ndsm = t.ndsm
         if r.stereo == "satellite" and sf.unobserved is not None:  # only where matched
             ndsm = ndsm.like(np.where(sf.unobserved, np.nan, ndsm.data), **ndsm.tags)
-        blobs = detect.find_blobs(ndsm, ev.share, cfg, u, planar=ev.planar, point_density=ev.density)
+        blobs = detect.find_blobs(ndsm, ev.share, cfg, u, planar=ev.planar, point_density=ev.density,
+                                  colour=s.summary.colour is not None)
         polygons = detect.detect_buildings(ndsm, ev.share, cfg, u, dtm=t.dtm, fine=ev.fine, mapper=_mapper(r),
                                            blobs=blobs)
         if r.stereo == "satellite" and sf.unobserved is not None:
