@@ -467,7 +467,7 @@ def _raised_top(points, center, rotation, fb: float, top: float, lo: float, hi: 
     reach = min(float((fb / depth).max()), lo + max_count)
     if reach <= hi:
         return hi, reason
-    return reach, reason + (f"; raised by {reach - hi:.0f} px to reach surfaces {ceiling - z_hi:.1f} (CRS units) "
+    return reach, reason + (f"; raised by {reach - hi:.1f} px to reach surfaces {ceiling - z_hi:.1f} (CRS units) "
                             "above the pair's highest sparse point (the block's highest, plus a margin)")
 
 
