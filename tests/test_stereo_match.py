@@ -437,3 +437,44 @@ def test_match_fills_the_far_end_of_a_wide_hole_from_the_surface_beside_it():
     assert np.median(without.disparity[core]) < 8  # background fill: the ground
     assert with_fg.foreground[core].mean() > 0.5
     assert np.median(with_fg.disparity[core]) > 14  # taken for the block
+
+
+def _ridge_scene(hole_colour_split: int, beyond: str = "ridge"):
+    """One row, repeated: matched ground at 10 px up to column 19, a hole over 20..49,
+    the ridge at 40 px from column 50 on (falling away, or flat); the left image green
+    up to ``hole_colour_split`` and red from there (RGB, with a little texture)."""
+    w = 80
+    row = np.full(w, 10.0, np.float32)
+    row[50:] = 40.0 - (np.arange(w - 50) * 0.5 if beyond == "ridge" else 0.0)
+    row[20:50] = np.nan
+    disp = np.repeat(row[None], 6, axis=0)
+    rng = np.random.default_rng(0)
+    image = np.empty((6, w, 3), np.float32)
+    image[:, :hole_colour_split] = (70, 110, 50)  # grass
+    image[:, hole_colour_split:] = (160, 75, 55)  # tiles
+    image += rng.normal(0, 4, image.shape)
+    return disp, np.where(np.isfinite(disp), disp, 10.0), np.clip(image, 0, 255).astype(np.uint8)
+
+
+def test_faces_by_colour_split_the_hole_where_the_roof_colour_starts():
+    from recon3d.stereo.match import faces_by_colour
+
+    disp, background, image = _ridge_scene(35)
+    face, value = faces_by_colour(disp, background, image)
+    # the face spans the red part of the hole; the green part is the hidden ground
+    assert face[:, 35:50].all() and not face[:, :35].any() and not face[:, 50:].any()
+    # its lower edge lands where the last ground pixel (19, at 10 px) lands in the
+    # right image: 35 - 26 = 19 - 10; then a ramp up to the ridge's 40 px
+    np.testing.assert_allclose(value[:, 35], 26.0)
+    assert np.all(np.diff(value[0, 35:50]) > 0) and value[0, 49] < 40.0
+    # a flat roof's edge holds no face beyond the hole
+    flat, background, image = _ridge_scene(35, beyond="flat")
+    assert not faces_by_colour(flat, background, image)[0].any()
+    # sides alike in colour: nothing to tell the face by
+    disp, background, image = _ridge_scene(35)
+    image[:] = image[:, :1]
+    assert not faces_by_colour(disp, background, image)[0].any()
+    # a dark shadow, unlike both sides, in the roof-side part: left alone
+    disp, background, image = _ridge_scene(35)
+    image[:, 35:50] = 20
+    assert not faces_by_colour(disp, background, image)[0].any()

@@ -448,3 +448,92 @@ def _median_at(disp, guide, r, c, oy, ox, spatial, inv, n, out):
     here = disp[r, c]
     median = values[pick]
     out[r, c] = median if np.abs(median - here) > 1.0 else here
+
+
+@njit(cache=True, parallel=True)
+def face_by_colour(disp, background, colour, min_step, min_contrast, side, descent, min_descent, likeness,
+                   out, value):
+    """The roof face in each occlusion hole, found by colour: into ``out`` (H, W) bool,
+    its disparities into ``value`` (H, W) float32.
+
+    A hole is a run of NaN in a row of ``disp`` between finite disparities, the right
+    one at least ``min_step`` above the left one, the left one no higher than the
+    hole's ``background`` fill + 1, and the surface beyond the right end falling away
+    from it (by ``min_descent`` px over ``descent`` px: a ridge, not a flat roof's
+    edge). Its reference colours are the means of ``colour`` (H, W, C) over the
+    ``side`` matched pixels beyond each end. Where they differ by ``min_contrast`` or
+    more (L1), the hole is split at the column that puts the left part nearest the
+    left colour and the right part nearest the right colour (summed L1 distances), and
+    the right part is the face when its mean distance to the right colour is at most
+    ``likeness`` times the contrast. Its disparities ramp linearly to the right end's
+    from the lower edge's: the right image sees the ground up to that edge, so the
+    edge lands where the last matched ground pixel on the left does.
+    """
+    h, w = disp.shape
+    nc = colour.shape[2]
+    for y in prange(h):
+        x = 0
+        while x < w:
+            if not np.isnan(disp[y, x]):
+                x += 1
+                continue
+            start = x
+            while x < w and np.isnan(disp[y, x]):
+                x += 1
+            il, ir = start - 1, x  # the hole is il + 1 .. ir - 1
+            if il < 0 or ir + descent >= w:
+                continue
+            d_l, d_r = disp[y, il], disp[y, ir]
+            if d_r - d_l < min_step or d_l > background[y, start] + 1.0:
+                continue
+            if np.isnan(disp[y, ir + descent]) or d_r - disp[y, ir + descent] < min_descent:
+                continue
+            _split_hole(disp, colour, y, il, ir, nc, side, min_contrast, likeness, out, value)
+
+
+@njit(cache=True)
+def _split_hole(disp, colour, y, il, ir, nc, side, min_contrast, likeness, out, value):
+    w = disp.shape[1]
+    bg = np.zeros(nc, np.float32)
+    fg = np.zeros(nc, np.float32)
+    nb = 0
+    nf = 0
+    for k in range(side):
+        if il - k >= 0 and not np.isnan(disp[y, il - k]):
+            nb += 1
+            for c in range(nc):
+                bg[c] += colour[y, il - k, c]
+        if ir + k < w and not np.isnan(disp[y, ir + k]):
+            nf += 1
+            for c in range(nc):
+                fg[c] += colour[y, ir + k, c]
+    contrast = np.float32(0.0)
+    for c in range(nc):
+        bg[c] /= nb
+        fg[c] /= nf
+        contrast += abs(fg[c] - bg[c])
+    if contrast < min_contrast:
+        return
+    # cost(s) = sum_{x < s} d_bg(x) + sum_{x >= s} d_fg(x): grow the right part leftwards
+    best_s = ir
+    best = np.float32(0.0)
+    run = np.float32(0.0)
+    near = np.float32(0.0)
+    near_best = np.float32(0.0)
+    for s in range(ir - 1, il, -1):
+        dbg = np.float32(0.0)
+        dfg = np.float32(0.0)
+        for c in range(nc):
+            dbg += abs(colour[y, s, c] - bg[c])
+            dfg += abs(colour[y, s, c] - fg[c])
+        run += dfg - dbg
+        near += dfg
+        if run < best:
+            best, best_s, near_best = run, s, near
+    if best_s == ir or near_best / np.float32(ir - best_s) > likeness * contrast:
+        return
+    d_r = disp[y, ir]
+    d_e = min(disp[y, il] + np.float32(best_s - il), d_r)
+    for s in range(best_s, ir):
+        out[y, s] = True
+        value[y, s] = d_e + (d_r - d_e) * np.float32(s - best_s) / np.float32(ir - best_s)

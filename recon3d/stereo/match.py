@@ -20,7 +20,9 @@ Method (engine ``"census"``, the default)
    left-right consistency check (``lr_tolerance``, 1.5 px) marks occlusions and mismatches.
 4. Speckle removal (small blobs disconnected from their surroundings), gap filling from
    the background side (occlusions are background seen by one image only: the second
-   smallest of the nearest valid disparities along the row and the column), a 5 x 5
+   smallest of the nearest valid disparities along the row and the column; with
+   ``fill_foreground``, the part of a hole beside a surface that both images see, or
+   that is coloured like the roof beyond a ridge, from that surface instead), a 5 x 5
    median filter, then an edge-aware weighted median around disparity steps that moves
    them onto the colour edges of the left image (the cost window smears a roof edge by
    a few pixels). ``DisparityResult.filled`` / ``.unfilled`` keep the map as matched.
@@ -98,7 +100,10 @@ from recon3d.errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ENGINES", "OCCLUSION_MARGIN_PX", "DisparityResult", "MatchParams", "foreground_beyond_occlusion", "match"]
+__all__ = [
+    "ENGINES", "OCCLUSION_MARGIN_PX", "DisparityResult", "MatchParams", "faces_by_colour", "foreground_beyond_occlusion",
+    "match",
+]
 
 #: Matching engines: ``"census"`` (census cost + own SGM) and ``"sgbm"`` (OpenCV StereoSGBM).
 ENGINES = ("census", "sgbm")
@@ -199,9 +204,11 @@ class MatchParams:
         filled map is always what the median filter sees.
     fill_foreground : bool
         Fill the far end of a hole that is wider than an occlusion from the surface
-        beside it, not from the background (see :func:`foreground_beyond_occlusion`):
-        a roof face foreshortened in one view, next to the ground hidden behind its
-        building, is otherwise filled at ground level with the hidden ground.
+        beside it, not from the background (see :func:`foreground_beyond_occlusion`),
+        and the part of a hole beside a ridge coloured like the roof (see
+        :func:`faces_by_colour`): a roof face foreshortened in one view, next to the
+        ground hidden behind its building, is otherwise filled at ground level with
+        the hidden ground.
     fill_confidence : float
         Confidence given to filled pixels, in [0, 1].
     edge_radius : int
@@ -479,8 +486,13 @@ def match(
     full = _fill_background(disp)
     foreground = None
     if params.fill_foreground:
+        background = full.copy()
         foreground, heights = _foreground(disp, best, full)
         full[foreground] = heights[foreground]
+        face, ramp = faces_by_colour(disp, background, left if guide is None else guide)
+        face &= ~foreground
+        full[face] = ramp[face]
+        foreground |= face
     filled = ~matched & np.isfinite(full)
     if params.median_size > 1:
         full = _median(full, params.median_size)
@@ -976,6 +988,75 @@ def _foreground(disp: np.ndarray, best: np.ndarray, background: np.ndarray) -> t
         nearer_right = np.abs(best - right) < np.abs(best - left)
         mask = beyond & nearer_right & (left <= background + 1.0)
         return mask, np.clip(best, left, right).astype(np.float32)
+
+
+#: Least disparity step (px) from a hole's left side to its right side for
+#: :func:`faces_by_colour` to look for a roof face in it.
+FACE_MIN_STEP_PX = 4.0
+#: Least L1 difference (Lab units, lightness weighted by :data:`FACE_LIGHTNESS_WEIGHT`)
+#: between the colours on the two sides of a hole for it to be split by colour.
+FACE_MIN_CONTRAST = 24.0
+#: Weight of lightness against the two colour axes: a face and the ground beside it
+#: differ in shading more than in colour, and a shadow changes lightness most.
+FACE_LIGHTNESS_WEIGHT = 0.25
+#: The face's pixels must lie this close to the roof's colour (mean L1 distance over
+#: the contrast): a shadow, unlike both sides, is not taken for the roof.
+FACE_LIKENESS = 0.35
+#: A face hidden from the right image ends at a ridge: the matched roof beyond the
+#: hole falls by :data:`FACE_RIDGE_DROP_PX` or more within :data:`FACE_RIDGE_SPAN_PX`.
+FACE_RIDGE_SPAN_PX = 4
+FACE_RIDGE_DROP_PX = 1.0
+
+
+def faces_by_colour(disp: np.ndarray, background: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Roof faces the right image sees too foreshortened to match, in the holes beside
+    them, told from the ground by the left image's colour.
+
+    At a wide base a roof face that rises towards a ridge away from the left camera is
+    squeezed into a few pixels of the right image; the matcher misses it and leaves a
+    hole that also holds the ground its building hides from the right image. Along a
+    row the hole runs from the matched ground (left) to the ridge (right). The face is
+    the part of it coloured like the roof beyond the ridge, the hidden ground the part
+    coloured like the ground: the hole is split where the colours change
+    (``recon3d.stereo._sgm.face_by_colour``). The face's disparity rises linearly to the
+    ridge's from that of its lower edge, which the right image shows where the last
+    matched ground pixel lands. Holes that end at a flat roof's edge, whose sides are
+    alike in colour, or whose roof-side part is not coloured like the roof are left
+    alone.
+
+    Parameters
+    ----------
+    disp : (H, W) float
+        Checked disparities, NaN in the holes.
+    background : (H, W) float
+        The background fill of the holes (:func:`_fill_background`).
+    image : (H, W, 3) or (H, W) array
+        The left image (RGB: colour is what tells a roof from the ground).
+
+    Returns
+    -------
+    face : (H, W) bool
+    disparity : (H, W) float32
+        The face pixels' disparities, NaN elsewhere.
+    """
+    import cv2
+    from recon3d.stereo import _sgm
+
+    shape = disp.shape
+    g = _guide(image, shape)
+    if g.shape[2] == 3:
+        lab = cv2.cvtColor(np.clip(g, 0, 255).astype(np.uint8), cv2.COLOR_RGB2LAB).astype(np.float32)
+        lab[:, :, 0] *= FACE_LIGHTNESS_WEIGHT
+    else:
+        lab = g * FACE_LIGHTNESS_WEIGHT
+    lab = cv2.blur(lab, (5, 5)).reshape(shape[0], shape[1], -1)  # the texture averaged out
+    face = np.zeros(shape, bool)
+    value = np.full(shape, np.nan, np.float32)
+    _sgm.face_by_colour(np.ascontiguousarray(disp, np.float32), np.ascontiguousarray(background, np.float32),
+                        np.ascontiguousarray(lab, np.float32), np.float32(FACE_MIN_STEP_PX),
+                        np.float32(FACE_MIN_CONTRAST), 3, FACE_RIDGE_SPAN_PX, np.float32(FACE_RIDGE_DROP_PX),
+                        np.float32(FACE_LIKENESS), face, value)
+    return face, value
 
 
 def _fill_background(disp: np.ndarray) -> np.ndarray:
