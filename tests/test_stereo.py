@@ -78,6 +78,24 @@ def test_cloud_is_georeferenced(stereo_run):
     assert {"red", "green", "blue"} <= set(las.point_format.dimension_names)
 
 
+def test_cloud_tells_matched_points_from_filled_in_ones(stereo_run, scene):
+    """cloud.laz's extra dimension ``observed``: 1 on matched points, 0 on the holes'
+    fill-ins, which a user filters out in CloudCompare or PDAL. Measured on this scene:
+    82 % matched; |z - truth| 90th percentile 0.27 m matched, 15 m filled in."""
+    import laspy
+
+    from recon3d.io.geotiff import read_raster
+
+    las = laspy.read(stereo_run.out_dir / "cloud.laz")
+    observed = np.asarray(las["observed"])
+    assert set(np.unique(observed)) == {0, 1} and 0.6 <= observed.mean() <= 0.95
+    truth = read_raster(scene / "truth" / "dsm.tif")
+    x, y, z = (np.asarray(v) for v in (las.x, las.y, las.z))
+    error = np.abs(z - truth.sample(x, y, bilinear=False))
+    matched, filled = (np.nanpercentile(error[observed == v], 90) for v in (1, 0))
+    assert matched <= 0.5 and filled >= 3 * matched, (matched, filled)
+
+
 def test_missing_image(scene, tmp_path):
     folder = copy_scene(scene, tmp_path)
     (folder / "images" / "right.png").unlink()

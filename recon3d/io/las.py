@@ -202,8 +202,9 @@ def write_las(cloud: PointCloud, path: str | Path, date: str | None = None) -> N
     """Write a cloud as LAS 1.4 (LAZ when the suffix is .laz), CRS as WKT in the header
     (:func:`las_wkt`).
 
-    Point format 6 without colour, 7 with RGB, 8 with RGB and NIR; ``date`` as for
-    :class:`LasStreamWriter`.
+    Point format 6 without colour, 7 with RGB, 8 with RGB and NIR; a stereo cloud's
+    ``observed`` attribute as an extra-bytes dimension of that name (:data:`OBSERVED`);
+    ``date`` as for :class:`LasStreamWriter`.
     """
     with LasStreamWriter(path, cloud.crs, list(cloud.attributes), cloud.bounds[0], date) as writer:
         writer.write(cloud)
@@ -233,6 +234,8 @@ class LasStreamWriter:
                  date: str | None = None) -> None:
         fmt = 8 if "nir" in names and "red" in names else 7 if "red" in names else 6
         header = laspy.LasHeader(point_format=fmt, version="1.4")
+        if "observed" in names:  # stereo: which points were matched, which filled in
+            header.add_extra_dim(laspy.ExtraBytesParams(name="observed", type=np.uint8, description=OBSERVED))
         header.creation_date = _dt.date.fromisoformat(date or today())
         header.offsets = np.floor(np.asarray(mins, np.float64))
         header.scales = np.array([0.001, 0.001, 0.001])
@@ -267,6 +270,8 @@ class LasStreamWriter:
         for name, values in a.items():
             if name in dims and name not in ("scan_angle_rank",):
                 las[name] = values
+        if "observed" in a:
+            las["observed"] = a["observed"]
         if "scan_angle_rank" in a and "scan_angle" not in a:
             las["scan_angle"] = np.round(a["scan_angle_rank"].astype(np.float64) / 0.006).astype(np.int16)
         self._writer.write_points(las.points)
@@ -288,6 +293,10 @@ class LasStreamWriter:
             self._writer.close()
             self._atomic.__exit__(kind, value, tb)
 
+
+#: Description of the extra-bytes dimension ``observed`` of a stereo cloud (at most 32
+#: characters): 1 where the images matched the point, 0 where a hole was filled in.
+OBSERVED = "1 matched, 0 filled-in guess"
 
 #: Points written at a time by :class:`LasStreamWriter`: ten LAZ chunks of 50,000.
 WRITE_BLOCK = 500_000
