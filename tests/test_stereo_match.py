@@ -442,7 +442,8 @@ def test_match_fills_the_far_end_of_a_wide_hole_from_the_surface_beside_it():
 def _ridge_scene(hole_colour_split: int, beyond: str = "ridge"):
     """One row, repeated: matched ground at 10 px up to column 19, a hole over 20..49,
     the ridge at 40 px from column 50 on (falling away, or flat); the left image green
-    up to ``hole_colour_split`` and red from there (RGB, with a little texture)."""
+    up to ``hole_colour_split`` and red from there (RGB on a 0..255 scale, with a little
+    texture)."""
     w = 80
     row = np.full(w, 10.0, np.float32)
     row[50:] = 40.0 - (np.arange(w - 50) * 0.5 if beyond == "ridge" else 0.0)
@@ -453,7 +454,7 @@ def _ridge_scene(hole_colour_split: int, beyond: str = "ridge"):
     image[:, :hole_colour_split] = (70, 110, 50)  # grass
     image[:, hole_colour_split:] = (160, 75, 55)  # tiles
     image += rng.normal(0, 4, image.shape)
-    return disp, np.where(np.isfinite(disp), disp, 10.0), np.clip(image, 0, 255).astype(np.uint8)
+    return disp, np.where(np.isfinite(disp), disp, 10.0), np.clip(image, 0, 255).astype(np.float32)
 
 
 def test_faces_by_colour_split_the_hole_where_the_roof_colour_starts():

@@ -234,7 +234,7 @@ class LasStreamWriter:
                  date: str | None = None) -> None:
         fmt = 8 if "nir" in names and "red" in names else 7 if "red" in names else 6
         header = laspy.LasHeader(point_format=fmt, version="1.4")
-        if "observed" in names:  # stereo: which points were matched, which filled in
+        if "observed" in names:  # stereo: which points were matched, which filled in (written with the others)
             header.add_extra_dim(laspy.ExtraBytesParams(name="observed", type=np.uint8, description=OBSERVED))
         header.creation_date = _dt.date.fromisoformat(date or today())
         header.offsets = np.floor(np.asarray(mins, np.float64))
@@ -270,8 +270,6 @@ class LasStreamWriter:
         for name, values in a.items():
             if name in dims and name not in ("scan_angle_rank",):
                 las[name] = values
-        if "observed" in a:
-            las["observed"] = a["observed"]
         if "scan_angle_rank" in a and "scan_angle" not in a:
             las["scan_angle"] = np.round(a["scan_angle_rank"].astype(np.float64) / 0.006).astype(np.int16)
         self._writer.write_points(las.points)

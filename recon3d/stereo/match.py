@@ -485,19 +485,19 @@ def match(
 
     full = _fill_background(disp)
     foreground = None
+    colour = _guide(left if guide is None else guide, gl.shape) if params.fill_foreground or params.edge_radius > 0 else None
     if params.fill_foreground:
-        background = full.copy()
         foreground, heights = _foreground(disp, best, full)
-        full[foreground] = heights[foreground]
-        face, ramp = faces_by_colour(disp, background, left if guide is None else guide)
+        face, ramp = faces_by_colour(disp, full, colour)  # both judged against the background fill
         face &= ~foreground
+        full[foreground] = heights[foreground]
         full[face] = ramp[face]
         foreground |= face
     filled = ~matched & np.isfinite(full)
     if params.median_size > 1:
         full = _median(full, params.median_size)
     if params.edge_radius > 0:
-        full = _edge_aware_median(full, _guide(left if guide is None else guide, gl.shape), params.edge_radius, params.edge_sigma)
+        full = _edge_aware_median(full, colour, params.edge_radius, params.edge_sigma)
     if nodata_l is not None:
         full[nodata_l] = np.nan
         filled &= ~nodata_l
@@ -1013,7 +1013,7 @@ FACE_RIDGE_SPAN_PX = 4
 FACE_RIDGE_DROP_PX = 1.0
 
 
-def faces_by_colour(disp: np.ndarray, background: np.ndarray, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def faces_by_colour(disp: np.ndarray, background: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Roof faces the right image sees too foreshortened to match, in the holes beside
     them, told from the ground by the left image's colour.
 
@@ -1035,8 +1035,9 @@ def faces_by_colour(disp: np.ndarray, background: np.ndarray, image: np.ndarray)
         Checked disparities, NaN in the holes.
     background : (H, W) float
         The background fill of the holes (:func:`_fill_background`).
-    image : (H, W, 3) or (H, W) array
-        The left image (RGB: colour is what tells a roof from the ground).
+    colour : (H, W, C) float32
+        The left image on a 0..255 scale (:func:`_guide`), RGB when it has colour:
+        colour is what tells a roof from the ground.
 
     Returns
     -------
@@ -1048,12 +1049,11 @@ def faces_by_colour(disp: np.ndarray, background: np.ndarray, image: np.ndarray)
     from recon3d.stereo import _sgm
 
     shape = disp.shape
-    g = _guide(image, shape)
-    if g.shape[2] == 3:
-        lab = cv2.cvtColor(np.clip(g, 0, 255).astype(np.uint8), cv2.COLOR_RGB2LAB).astype(np.float32)
+    if colour.shape[2] == 3:
+        lab = cv2.cvtColor(np.clip(colour, 0, 255).astype(np.uint8), cv2.COLOR_RGB2LAB).astype(np.float32)
         lab[:, :, 0] *= FACE_LIGHTNESS_WEIGHT
     else:
-        lab = g * FACE_LIGHTNESS_WEIGHT
+        lab = colour * FACE_LIGHTNESS_WEIGHT
     lab = cv2.blur(lab, (5, 5)).reshape(shape[0], shape[1], -1)  # the texture averaged out
     face = np.zeros(shape, bool)
     value = np.full(shape, np.nan, np.float32)
