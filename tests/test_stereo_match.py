@@ -422,6 +422,27 @@ def test_foreground_beyond_occlusion_is_the_far_end_of_a_hole_wider_than_the_ste
     assert not foreground_beyond_occlusion(street, np.full_like(street, 19.0), np.full_like(street, 10.0)).any()
 
 
+def test_ground_hidden_in_a_courtyard_is_filled_from_the_ground_not_the_roof_around_it():
+    """A courtyard open to the left, partly hidden from the right image by the wing
+    right of it: its column neighbours are roof, and the second smallest neighbour (the
+    rule for a mismatch) would raise it to the roof."""
+    from recon3d.stereo.match import _fill_background
+
+    ground, roof = 10.0, 30.0
+    disp = np.full((60, 120), ground, np.float32)
+    disp[5:56, 60:100] = roof  # the wing
+    disp[5:16, 20:100] = roof  # the two arms around the courtyard
+    disp[45:56, 20:100] = roof
+    disp[16:45, 20:60] = np.nan  # the courtyard, 40 px wide
+    disp[25:30, 85:90] = np.nan  # a hole in the roof, which the right image sees
+    filled = _fill_background(disp)
+    # the 20 px (the step from ground to roof) next to the wing: hidden ground
+    assert np.all(filled[16:45, 40:60] == ground)
+    # the rest both images see: a mismatch, left to the neighbours
+    assert np.all(filled[16:45, 20:38] == roof)
+    assert np.all(filled[25:30, 85:90] == roof)
+
+
 def test_match_fills_the_far_end_of_a_wide_hole_from_the_surface_beside_it():
     """End to end: a step the matcher cannot match on one side of a raised block."""
     rng = np.random.default_rng(3)

@@ -1072,6 +1072,14 @@ def _fill_background(disp: np.ndarray) -> np.ndarray:
     Rows alone would fill a gap between two raised objects (a tree beside a building)
     at their height; the columns bring in the ground seen above and below the gap, and
     taking the second smallest keeps one stray low value from winning.
+
+    A pixel the right image cannot see takes the smallest when that is its left
+    neighbour's (Hirschmueller's occlusions, told from mismatches): ground hidden behind
+    a raised surface lies left of that surface in the left image, and where the ground's
+    disparity would put it in the right image, the right image shows the nearer surface
+    instead (:func:`_hidden_from_right`). Its second smallest neighbour, above or below
+    it along the raised surface's edge, is often that surface, which carried roofs onto
+    hidden ground.
     """
     out = disp.copy()
     holes = ~np.isfinite(out)
@@ -1083,7 +1091,32 @@ def _fill_background(disp: np.ndarray) -> np.ndarray:
     found = np.sort(found, axis=0)  # NaN sorts last
     count = np.isfinite(found).sum(axis=0)
     out[holes] = np.where(count >= 2, found[1], found[0])
+    rows, cols = np.nonzero(holes)
+    lowest = found[0]
+    occluded = (np.abs(left[holes] - lowest) <= 1.0) & (out[holes] > lowest)
+    occluded[occluded] = _hidden_from_right(disp, rows[occluded], cols[occluded], lowest[occluded])
+    out[rows[occluded], cols[occluded]] = lowest[occluded]
     return out
+
+
+def _hidden_from_right(disp: np.ndarray, rows: np.ndarray, cols: np.ndarray, candidate: np.ndarray) -> np.ndarray:
+    """(n,) bool: left pixels (``rows``, ``cols``) that, at the ``candidate`` disparities,
+    land on right-image pixels showing a matched surface nearer by more than 1 px.
+
+    The right image's view is that of the matched left pixels: each right pixel shows
+    the largest disparity landing on it."""
+    h, w = disp.shape
+    seen = np.full((h, w), -np.inf, np.float32)
+    r, c = np.nonzero(np.isfinite(disp))
+    d = disp[r, c]
+    xr = np.rint(c - d).astype(np.int64)
+    on = (xr >= 0) & (xr < w)
+    np.maximum.at(seen, (r[on], xr[on]), d[on])
+    x = np.rint(cols - candidate).astype(np.int64)
+    inside = (x >= 0) & (x < w)
+    hidden = np.zeros(len(rows), bool)
+    hidden[inside] = seen[rows[inside], x[inside]] > candidate[inside] + 1.0
+    return hidden
 
 
 def photo_consistency(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, window: int = 7) -> np.ndarray:
