@@ -16,6 +16,13 @@ ground for both, since OpenCV leaves much of a wide-base survey empty).
     .venv/bin/python scripts/bench_frame_stereo.py --width 800 --random 10
     .venv/bin/python scripts/bench_frame_stereo.py --only nadir_pair --vectors
     .venv/bin/python scripts/bench_frame_stereo.py --only random_45 random_52 --width 1000
+    .venv/bin/python scripts/bench_frame_stereo.py --surveys development --width 1000
+    .venv/bin/python scripts/bench_frame_stereo.py --surveys held-out --width 1000
+
+``--surveys development``: the 25 surveys (9 named, 16 random) the matcher's rules were
+measured and chosen on; ``--surveys held-out``: random surveys no rule was ever tuned
+on, to tell a gain that generalises from one fitted to the development set. Keep
+adding seeds to the held-out set, never move one the other way.
 
 ``--vectors`` also runs recon3d with the truth footprints (eave and ridge heights), the
 spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
@@ -244,6 +251,10 @@ RATIO_KEYS = [("coverage", "coverage %"), ("dsm_rms_tolerant", "DSM RMS (toleran
 
 #: ``--quick``: the survey and the image width.
 QUICK = ("nadir_pair", 320)
+#: Random seeds of ``--surveys development``, after the named configurations.
+DEVELOPMENT_SEEDS = (1, 4, 6, 17, 40, 41, 42, 44, 45, 46, 47, 51, 52, 53, 55, 56)
+#: Random seeds of ``--surveys held-out``: never looked at while designing.
+HELD_OUT_SEEDS = (61, 62, 63, 64)
 
 
 def print_ratios(rows: list[dict]) -> None:
@@ -284,6 +295,9 @@ def main() -> None:
     parser.add_argument("--random", type=int, default=4, help="random surveys after the named ones")
     parser.add_argument("--only", nargs="*", metavar="SURVEY",
                         help="surveys to run: named configurations, or random_N for the random survey of seed N")
+    parser.add_argument("--surveys", choices=("development", "held-out"),
+                        help="a fixed set instead of the named ones and --random: the 25 the rules were "
+                             "chosen on, or the random ones held out from that")
     parser.add_argument("--vectors", action="store_true", help="also run with the truth footprints as constraints")
     parser.add_argument("--json", type=Path, help="write every figure here")
     parser.add_argument("--set", dest="overrides", action="append", metavar="STAGE.KEY=VALUE",
@@ -296,7 +310,14 @@ def main() -> None:
     if unknown:
         _bench.refuse(f"no survey named {', '.join(unknown)}; known: {', '.join(sorted(CONFIGURATIONS))}, "
                       "random_N (N >= 0)")
-    specs = [survey(n) for n in args.only] if args.only else family(args.random)
+    if args.only:
+        specs = [survey(n) for n in args.only]
+    elif args.surveys == "development":
+        specs = [*CONFIGURATIONS.values(), *(random_spec(k) for k in DEVELOPMENT_SEEDS)]
+    elif args.surveys == "held-out":
+        specs = [random_spec(k) for k in HELD_OUT_SEEDS]
+    else:
+        specs = family(args.random)
     if args.width:
         specs = [s.with_width(args.width) for s in specs]
     rows = []
