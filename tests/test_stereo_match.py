@@ -443,6 +443,19 @@ def test_ground_hidden_in_a_courtyard_is_filled_from_the_ground_not_the_roof_aro
     assert np.all(filled[25:30, 85:90] == roof)
 
 
+def test_a_stray_low_match_above_a_hidden_hole_is_not_taken_for_the_ground():
+    """Only a lowest neighbour on the left (where the ground behind a raised surface
+    lies) is taken: a stray low match above the hole is not the ground."""
+    from recon3d.stereo.match import _fill_background
+
+    ground, roof = 10.0, 30.0
+    disp = np.full((120, 120), ground, np.float32)
+    disp[:, 60:100] = roof
+    disp[5:, 40:60] = np.nan  # ground hidden behind the roof, open only at the top
+    disp[4, 40:60] = 2.0  # a row of stray matches under the ground at its top
+    assert np.all(_fill_background(disp)[5:, 40:60] == ground)  # the left neighbour
+
+
 def test_match_fills_the_far_end_of_a_wide_hole_from_the_surface_beside_it():
     """End to end: a step the matcher cannot match on one side of a raised block."""
     rng = np.random.default_rng(3)
