@@ -1090,12 +1090,13 @@ def _fill_background(disp: np.ndarray) -> np.ndarray:
     found = np.stack([left[holes], right[holes], up.T[holes], down.T[holes]])
     found = np.sort(found, axis=0)  # NaN sorts last
     count = np.isfinite(found).sum(axis=0)
-    out[holes] = np.where(count >= 2, found[1], found[0])
-    rows, cols = np.nonzero(holes)
-    lowest = found[0]
-    occluded = (np.abs(left[holes] - lowest) <= 1.0) & (out[holes] > lowest)
-    occluded[occluded] = _hidden_from_right(disp, rows[occluded], cols[occluded], lowest[occluded])
-    out[rows[occluded], cols[occluded]] = lowest[occluded]
+    fill, lowest = np.where(count >= 2, found[1], found[0]), found[0]
+    occluded = (np.abs(left[holes] - lowest) <= 1.0) & (fill > lowest)
+    if occluded.any():
+        rows, cols = np.nonzero(holes)
+        occluded[occluded] = _hidden_from_right(disp, rows[occluded], cols[occluded], lowest[occluded])
+        fill[occluded] = lowest[occluded]
+    out[holes] = fill
     return out
 
 
