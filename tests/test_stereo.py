@@ -315,10 +315,11 @@ def test_a_notch_in_a_matched_roof_keeps_its_height():
     """A notch the matcher missed in the east edge of a matched 15 m roof (2 m wide,
     4 m deep, 0.5 m cells), filled in at 14 m: at the DTM's height the east camera sees
     it and the block hides it from the west one, just as ground beside a building, so
-    the second visibility test lowered all of it. The inner 3 m lie inside the 1 m
-    closing of the matched roof, a roof hole, and keep their height (the mouth, which
-    no closing reaches, is still lowered); hidden ground west of the block, outside
-    every closing, is still lowered."""
+    the second visibility test lowered all of it. The 1 m disc closing of the matched
+    roof reaches its inner 3 m only; the closing by a vertical line reaching 1.5 m
+    either side spans it whole, mouth included: a roof stripe, it keeps its height (as
+    a 6 x 8 m notch's mouth does not). Hidden ground west of the block, outside every
+    closing, is still lowered."""
     from affine import Affine
 
     from recon3d.core.geo import Units
@@ -329,18 +330,23 @@ def test_a_notch_in_a_matched_roof_keeps_its_height():
     z = np.zeros((120, 120))
     z[40:80, 40:80] = 15.0
     matched = np.ones(z.shape, bool)
-    notch, inner = (slice(56, 60), slice(72, 80)), (slice(56, 60), slice(72, 78))
+    notch = (slice(56, 60), slice(72, 80))
     beside = (slice(56, 64), slice(34, 40))  # west of the block: hidden from the east camera
     z[notch], z[beside] = 14.0, 10.0
     matched[notch] = matched[beside] = False
     transform = Affine(0.5, 0, 0.0, 0, -0.5, 60.0)
     dsm, dtm = Raster(z, transform), Raster(np.zeros(z.shape), transform)
     holes = roof_holes(dsm, dtm, matched, Units())
-    assert holes[inner].all() and not holes[beside].any()
+    assert holes[notch].all() and not holes[beside].any()
     lower = unseen_guesses(scene, [{"images": ["w", "e"]}], dsm, dtm, ~matched, matched, Units(),
                            tolerance=0.5, min_area=4.0)
-    assert not lower[inner].any() and lower[notch].sum() == 8
+    assert not lower[notch].any()
     assert lower[beside].all()
+    wide = (slice(52, 64), slice(72, 80))  # 6 m wide: wider than the lines close
+    z[wide] = 14.0
+    matched[wide] = False
+    holes = roof_holes(Raster(z, transform), dtm, matched, Units())
+    assert not holes[wide][:, -1].any()
 
 
 def test_matcher_against_the_exact_disparity(scene):
