@@ -367,8 +367,7 @@ def raise_to_terrain(dsm: Raster, dtm: Raster) -> np.ndarray:
         The rise of each cell (CRS height units), 0 where the DSM was not below the DTM
         or either is nodata.
     """
-    if dsm.transform != dtm.transform or dsm.shape != dtm.shape:
-        raise ValueError("DSM and DTM must share one grid")
+    _require_one_grid(dsm, dtm)
     with np.errstate(invalid="ignore"):
         lift = np.nan_to_num(dtm.data - dsm.data, nan=0.0).clip(min=0.0).astype(np.float32)
     below = lift > 0
@@ -376,9 +375,13 @@ def raise_to_terrain(dsm: Raster, dtm: Raster) -> np.ndarray:
     return lift
 
 
-def make_ndsm(dsm: Raster, dtm: Raster) -> Raster:
-    """Height above ground, DSM minus DTM, negative values clipped to 0; NaN where the DSM is."""
+def _require_one_grid(dsm: Raster, dtm: Raster) -> None:
     if dsm.transform != dtm.transform or dsm.shape != dtm.shape:
         raise ValueError("DSM and DTM must share one grid")
+
+
+def make_ndsm(dsm: Raster, dtm: Raster) -> Raster:
+    """Height above ground, DSM minus DTM, negative values clipped to 0; NaN where the DSM is."""
+    _require_one_grid(dsm, dtm)
     ndsm = np.maximum(dsm.data - dtm.data, 0.0)
     return dsm.like(ndsm, product="nDSM", method="DSM - DTM, clipped at 0")
