@@ -13,7 +13,7 @@ from conftest import CITYJSON_SCHEMA, shared
 from recon3d.io.checkpoints import read_checkpoints
 from recon3d.io.geotiff import read_raster
 from recon3d.synthetic.city import ROOF_TYPES, make_city, nice_cell_size
-from recon3d.synthetic.render import check_coverage, stereo_cameras
+from recon3d.synthetic.render import Lighting, check_coverage, render, stereo_cameras
 from recon3d.synthetic.scene import write_scene
 
 SMALL = {"seed": 3, "size": 120.0, "gsd": 0.5, "image_size": (400, 300), "n_sparse": 150}
@@ -56,6 +56,19 @@ def test_camera_pair_not_rectified_and_fits():
     assert not np.allclose(cams[0].R, cams[1].R)
     with pytest.raises(ValueError, match="does not fit"):
         check_coverage(make_city(0, size=200.0), cams)
+
+
+def test_pixel_samples_integrate_the_light_over_the_pixel():
+    """With ``pixel_samples`` 3 a pixel is close to the mean light over its area (a 7 x 7
+    ray render as reference), as a sensor records it; one ray per pixel centre is not:
+    the scene's finest texture aliases (a wide-angle view, 0.5 m pixels on 0.4 m texture).
+    Measured: 1.6 DN RMS from the reference with 3 x 3 rays, 6.9 DN with one ray."""
+    city = make_city(3, size=120.0)
+    cam = stereo_cameras(np.array([60.0, 60.0, 0.0]), gsd=0.5, width=160, height=120, focal=120, base_to_height=0.8)[0]
+    renders = {k: render(city, cam, lighting=Lighting(pixel_samples=k), seed=1) for k in (1, 3, 7)}
+    rms = {k: float(np.sqrt(np.mean((renders[k].image.astype(float) - renders[7].image) ** 2))) for k in (1, 3)}
+    assert rms[3] < 2.5 < 5.0 < rms[1]
+    assert np.array_equal(renders[3].xyz, renders[1].xyz, equal_nan=True)  # surface points at pixel centres
 
 
 def test_pixel_convention_against_pycolmap(scene):

@@ -460,6 +460,7 @@ def _scene_record(city, cameras, gsd, cell, lighting, n_sparse) -> dict:
         "n_trees": len(city.trees),
         "n_sparse_points": n_sparse,
         "sun": {"azimuth": lighting.azimuth, "elevation": lighting.elevation},
+        "pixel_samples": lighting.pixel_samples,
         "cameras": [
             {
                 "name": c.name,
