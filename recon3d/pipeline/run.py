@@ -757,6 +757,8 @@ def make_dtm(r: Run) -> None:
         constraints = np.concatenate([dtm_stage.densify_lines(lines, g.transform.a / 2), points])
     sf = r.surface
     dtm = dtm_stage.dtm_from_cells(mean, count, sf.dsm, noise=noise, constraints=constraints)
+    if r.stereo == "frame":
+        dtm = _refill_under_ground_ties(r, dtm, mean, count, noise, constraints)
     if r.stereo == "satellite":  # no extrapolation beyond what both images see
         dtm.data[~np.isfinite(sf.dsm.data)] = np.nan
     elif sf.unobserved is not None:
@@ -773,6 +775,32 @@ def make_dtm(r: Run) -> None:
         _check_matched_in_view(r, noise)
     r.terrain.dtm = dtm
     r.terrain.ndsm = dtm_stage.make_ndsm(sf.dsm, dtm)
+
+
+def _refill_under_ground_ties(r: Run, dtm: Raster, mean: np.ndarray, count: np.ndarray, noise: float,
+                              constraints: np.ndarray | None) -> Raster:
+    """Frame stereo: the DTM again, with its regions sunk under the ground tie points
+    inside them (:func:`recon3d.stereo.check.sunk_under_ground_ties`) interpolated from
+    their rim and those tie points instead of from the ground cells in them."""
+    from recon3d.stereo.check import GROUND_TIE_BAND, GROUND_TIE_MAX_SPREAD, SUNK_MARGIN, sunk_under_ground_ties
+
+    scene, u = r.source.scene, r.units
+    if scene is None or not len(scene.sparse):
+        return dtm
+    sunk, ties = sunk_under_ground_ties(dtm, scene.sparse + scene.offset, margin=u.height(SUNK_MARGIN),
+                                        band=u.height(GROUND_TIE_BAND), max_spread=u.height(GROUND_TIE_MAX_SPREAD))
+    r.auto["dtm.sunk_under_ground_ties"] = {
+        "value": int(sunk.sum()), "tie_points": len(ties),
+        "reason": f"cells of regions where the DTM lay more than {SUNK_MARGIN:g} m under the plane of the ground tie "
+                  f"points and a ground tie point inside stood more than {SUNK_MARGIN:g} m above it (a patch of "
+                  "mismatches taken for the ground): interpolated from their rim and the ground tie points in them",
+    }
+    if not sunk.any():
+        return dtm
+    log.info("DTM: %d cells sunk under %d ground tie points interpolated again", int(sunk.sum()), len(ties))
+    fixed = ties if constraints is None else np.concatenate([constraints, ties])
+    return dtm_stage.dtm_from_cells(np.where(sunk, np.nan, mean), np.where(sunk, 0.0, count), r.surface.dsm,
+                                    noise=noise, constraints=fixed)
 
 
 def _lower_unseen_guesses(r: Run, dtm: Raster, noise: float) -> None:

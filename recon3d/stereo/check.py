@@ -22,6 +22,11 @@ lie on the ground, so a dense point far below every tie point around it is a mis
 On a rendered hilly survey seven cells of such points under a hilltop sank the DTM by
 metres (ground check points 1.54 m RMS, 0.10 m without them).
 
+They also check the DTM (:func:`sunk_under_ground_ties`): a coherent patch of
+mismatches a few metres under the ground, too shallow for the bound above, can be taken
+for the ground over hundreds of square metres. The tie points on the ground inside such
+a patch contradict it.
+
 :func:`verdict` turns the figures into an error (the geometry contradicts the input:
 nothing is written) or a warning (part of the area is lost), with the pair and the
 figures named.
@@ -37,13 +42,13 @@ import numpy as np
 import shapely
 
 from recon3d.core.geo import Units
-from recon3d.core.raster import grid_for_bounds
+from recon3d.core.raster import Raster, grid_for_bounds
 from recon3d.errors import InputError
 from recon3d.stereo.rectify import RectifiedPair
 from recon3d.terrain.dsm import grid_points
 
-__all__ = ["LIMITS", "MIN_TIE_POINTS_FOR_PLANE", "TIE_POINT_RADIUS", "check_pair", "tie_ground", "tie_point_radius",
-           "under_tie_points", "verdict"]
+__all__ = ["LIMITS", "MIN_TIE_POINTS_FOR_PLANE", "TIE_POINT_RADIUS", "check_pair", "sunk_under_ground_ties", "tie_ground",
+           "tie_point_radius", "under_tie_points", "verdict"]
 
 #: Thresholds of :func:`verdict`: least coverage (percent, a warning below), largest
 #: median discrepancy (ground sample distances) and largest 95th percentile of the
@@ -289,3 +294,65 @@ def tie_ground(tie_points: np.ndarray) -> tuple[Callable[[np.ndarray], np.ndarra
         return xy[:, 0] * coef[0] + xy[:, 1] * coef[1] + coef[2]
 
     return plane, spread
+
+
+#: Largest spread (m) of the ground tie points about their plane (:func:`tie_ground`)
+#: for which :func:`sunk_under_ground_ties` tells ground tie points from the others:
+#: flat or evenly sloping land. On hills no plane tells them apart, and the check is off.
+GROUND_TIE_MAX_SPREAD = 0.5
+
+#: How far (m) beyond three spreads a ground tie point may lie from the plane.
+GROUND_TIE_BAND = 0.5
+
+#: How far (m) the DTM may lie under the ground tie points before its region is sunk.
+SUNK_MARGIN = 1.0
+
+
+def sunk_under_ground_ties(dtm: Raster, tie_points: np.ndarray, *, margin: float, band: float,
+                           max_spread: float) -> tuple[np.ndarray, np.ndarray]:
+    """The DTM's regions sunk under the ground tie points inside them.
+
+    Ground tie points are those within ``band`` plus three spreads of the plane under
+    the tie points (:func:`tie_ground`); only where that plane fits the ground closely
+    (spread at most ``max_spread``) does it tell them from roofs and crowns. A region is
+    a 4-connected set of cells where the DTM lies more than ``margin`` under the plane;
+    it is sunk when a ground tie point in it stands more than ``margin`` above the DTM.
+    A pit that holds no ground tie point is left as it is: it may be real.
+
+    Parameters
+    ----------
+    dtm : Raster
+        (rows, cols) terrain heights, NaN where unknown.
+    tie_points : (m, 3) float
+        Sparse points, in the DTM's coordinates.
+    margin, band, max_spread : float
+        CRS height units.
+
+    Returns
+    -------
+    sunk : (rows, cols) bool
+    ties : (k, 3) float
+        The ground tie points inside the sunk regions.
+    """
+    ground = tie_ground(tie_points)
+    none = np.zeros(dtm.shape, bool), np.empty((0, 3))
+    if ground is None or ground[1] > max_spread:
+        return none
+    plane, spread = ground
+    t = np.asarray(tie_points, np.float64)
+    t = t[np.abs(t[:, 2] - plane(t[:, :2])) <= band + 3.0 * spread]
+    row, col = dtm.rowcol(t[:, 0], t[:, 1])
+    inside = (row >= 0) & (row < dtm.shape[0]) & (col >= 0) & (col < dtm.shape[1])
+    t, row, col = t[inside], row[inside], col[inside]
+    if not len(t):
+        return none
+    rows, cols = np.indices(dtm.shape)
+    x, y = dtm.transform * (cols.ravel() + dtm.origin[1] + 0.5, rows.ravel() + dtm.origin[0] + 0.5)
+    under = plane(np.column_stack([x, y])).reshape(dtm.shape) - margin
+    low = np.isfinite(dtm.data) & (dtm.data < under)
+    contradicted = low[row, col] & (t[:, 2] - dtm.data[row, col] > margin)
+    if not contradicted.any():
+        return none
+    _, labels = cv2.connectedComponents(low.astype(np.uint8), connectivity=4)
+    sunk = np.isin(labels, np.unique(labels[row[contradicted], col[contradicted]]))
+    return sunk, t[sunk[row, col]]
