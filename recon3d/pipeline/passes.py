@@ -287,6 +287,10 @@ class Finish:
     crowns : (rows, cols) bool or None
         The same window of the cells of detected blobs found to be tree crowns: their
         points above ``vegetation_min_height`` are vegetation.
+    sunk : (rows, cols) bool or None
+        The same window of the DTM cells interpolated again under the ground tie points
+        (frame stereo): their ground points more than ``SUNK_MARGIN`` below the DTM are
+        low noise (7).
     """
 
     labels: np.ndarray
@@ -304,6 +308,7 @@ class Finish:
     reference_grid: building_quality.ReferenceGrid | None
     buffer: int
     crowns: np.ndarray | None = None
+    sunk: np.ndarray | None = None
 
 
 def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
@@ -335,6 +340,12 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
         roof_surface=roof_surface, roughness=rough, tolerance=f.tolerance, plane_tolerance=f.plane_tolerance,
         depth=f.depth,
     )
+    if f.sunk is not None:  # the mismatches a sunk DTM was interpolated over again: low points, not ground
+        from recon3d.stereo.check import SUNK_MARGIN
+
+        low = f.sunk[row, col] & (point_classes == ASPRS.GROUND)
+        low &= xyz[:, 2] < f.dtm.data[row, col] - u.height(SUNK_MARGIN)
+        point_classes[low] = ASPRS.NOISE
     if f.hidden_ground:  # the guesses over hidden ground stay in the cloud, above the DSM that replaced them
         above = xyz[:, 2] > f.dsm.sample(xyz[:, 0], xyz[:, 1], bilinear=False) + u.height(0.5)
         point_classes[above] = ASPRS.NOISE

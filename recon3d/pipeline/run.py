@@ -159,6 +159,7 @@ class Terrain:
     dtm: Raster
     ndsm: Raster
     noise: float  # height noise of the minimum surface (CRS units, as run.json records it)
+    sunk: np.ndarray | None = None  # (rows, cols) bool: DTM cells interpolated again under the ground tie points
 
 
 @dataclass
@@ -797,6 +798,7 @@ def _refill_under_ground_ties(r: Run, dtm: Raster, mean: np.ndarray, count: np.n
     }
     if not sunk.any():
         return dtm
+    r.terrain.sunk = sunk
     log.info("DTM: %d cells sunk under %d ground tie points interpolated again", int(sunk.sum()), len(ties))
     fixed = ties if constraints is None else np.concatenate([constraints, ties])
     return dtm_stage.dtm_from_cells(np.where(sunk, np.nan, mean), np.where(sunk, 0.0, count), r.surface.dsm,
@@ -1400,6 +1402,7 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         tolerance=max(u.height(0.25), 2.0 * plane), plane_tolerance=plane,
         hidden_ground=bool(r.auto.get("dsm.hidden_ground", {}).get("value")), reference_grid=reference_grid,
         buffer=g.buffers["reference"], crowns=None if r.evidence.crowns is None else r.evidence.crowns[rows, cols],
+        sunk=None if r.terrain.sunk is None else r.terrain.sunk[rows, cols],
     )
 
 
