@@ -346,9 +346,10 @@ def sunk_under_ground_ties(dtm: Raster, tie_points: np.ndarray, *, margin: float
     t, row, col = t[inside], row[inside], col[inside]
     if not len(t):
         return none
-    rows, cols = np.indices(dtm.shape)
-    x, y = dtm.transform * (cols.ravel() + dtm.origin[1] + 0.5, rows.ravel() + dtm.origin[0] + 0.5)
-    under = plane(np.column_stack([x, y])).reshape(dtm.shape) - margin
+    corner = np.add(dtm.origin, 0.5)  # the plane at the first cell's centre, and its steps per row and column
+    z0, down, right = plane(np.array([dtm.transform * (corner[1] + dc, corner[0] + dr)
+                                      for dr, dc in ((0, 0), (1, 0), (0, 1))]))
+    under = (z0 - margin) + (down - z0) * np.arange(dtm.shape[0])[:, None] + (right - z0) * np.arange(dtm.shape[1])
     low = np.isfinite(dtm.data) & (dtm.data < under)
     contradicted = low[row, col] & (t[:, 2] - dtm.data[row, col] > margin)
     if not contradicted.any():
