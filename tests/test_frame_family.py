@@ -304,6 +304,7 @@ def test_a_patch_of_mismatches_under_the_ground_ties_is_no_terrain(tmp_path):
     state, score = _run_survey(52, 1000, tmp_path, pixel_samples=3)
     sunk = state.auto["dtm.sunk_under_ground_ties"]
     assert sunk["value"] > 10_000 and sunk["tie_points"] >= 3, sunk
+    assert any("under 3 ground tie point(s)" in w and "doubtful" in w for w in state.warnings), state.warnings
     assert score["dsm_within_1m"] >= 90.0, score
     las = laspy.read(tmp_path / "out" / "cloud.laz")  # the patch's points are low noise in the cloud, not ground
     depth = state.dtm.sample(np.asarray(las.x), np.asarray(las.y), bilinear=False) - np.asarray(las.z)

@@ -799,7 +799,12 @@ def _refill_under_ground_ties(r: Run, dtm: Raster, mean: np.ndarray, count: np.n
     if not sunk.any():
         return dtm
     r.terrain.sunk = sunk
-    log.info("DTM: %d cells sunk under %d ground tie points interpolated again", int(sunk.sum()), len(ties))
+    depth = float(np.nanmax(ties[:, 2] - dtm.sample(ties[:, 0], ties[:, 1], bilinear=False)))
+    area = np.count_nonzero(sunk & np.isfinite(r.surface.dsm.data)) * (dtm.resolution * u.horizontal) ** 2
+    r.warn(f"the DTM lay up to {depth * u.vertical:.1f} m under {len(ties)} ground tie point(s) over "
+           f"{area:.0f} m2 of the data (mismatches taken "
+           "for the ground): interpolated again from those tie points and the region's rim; the matching there is "
+           "doubtful (run.json dtm.sunk_under_ground_ties)")
     fixed = ties if constraints is None else np.concatenate([constraints, ties])
     return dtm_stage.dtm_from_cells(np.where(sunk, np.nan, mean), np.where(sunk, 0.0, count), r.surface.dsm,
                                     noise=noise, constraints=fixed)
