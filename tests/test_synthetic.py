@@ -69,6 +69,8 @@ def test_pixel_samples_integrate_the_light_over_the_pixel():
     rms = {k: float(np.sqrt(np.mean((renders[k].image.astype(float) - renders[7].image) ** 2))) for k in (1, 3)}
     assert rms[3] < 2.5 < 5.0 < rms[1]
     assert np.array_equal(renders[3].xyz, renders[1].xyz, equal_nan=True)  # surface points at pixel centres
+    with pytest.raises(ValueError, match="pixel_samples"):
+        Lighting(pixel_samples=0)
 
 
 def test_pixel_convention_against_pycolmap(scene):

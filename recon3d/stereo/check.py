@@ -346,10 +346,10 @@ def sunk_under_ground_ties(dtm: Raster, tie_points: np.ndarray, *, margin: float
     t, row, col = t[inside], row[inside], col[inside]
     if not len(t):
         return none
-    corner = np.add(dtm.origin, 0.5)  # the plane at the first cell's centre, and its steps per row and column
-    z0, down, right = plane(np.array([dtm.transform * (corner[1] + dc, corner[0] + dr)
-                                      for dr, dc in ((0, 0), (1, 0), (0, 1))]))
-    under = (z0 - margin) + (down - z0) * np.arange(dtm.shape[0])[:, None] + (right - z0) * np.arange(dtm.shape[1])
+    xs, ys = dtm.cell_centers()  # a plane is the sum of its first row and its first column, less their corner
+    along_x = plane(np.column_stack([xs, np.full_like(xs, ys[0])]))
+    along_y = plane(np.column_stack([np.full_like(ys, xs[0]), ys]))
+    under = along_y[:, None] + (along_x - along_x[0] - margin)
     low = np.isfinite(dtm.data) & (dtm.data < under)
     contradicted = low[row, col] & (t[:, 2] - dtm.data[row, col] > margin)
     if not contradicted.any():

@@ -456,6 +456,10 @@ class Lighting:
     noise_sigma: float = 2.0
     pixel_samples: int = 1
 
+    def __post_init__(self) -> None:
+        if int(self.pixel_samples) != self.pixel_samples or self.pixel_samples < 1:
+            raise ValueError(f"pixel_samples {self.pixel_samples}: a whole number, at least 1")
+
     @property
     def sun(self) -> np.ndarray:
         """(3,) unit vector towards the sun."""
@@ -546,8 +550,6 @@ def render(
     start = time.perf_counter()
     centres = camera.pixel_centres()
     k = int(lighting.pixel_samples)
-    if k < 1:
-        raise ValueError(f"pixel_samples {k}: at least 1")
     offsets = (np.arange(k) + 0.5) / k - 0.5  # 0 among them when k is odd
     radiance, xyz = 0.0, None
     for dy in offsets:
