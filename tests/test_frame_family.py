@@ -53,14 +53,15 @@ def surveys(tmp_path_factory):
     return out
 
 
-def _run_survey(seed: int, width: int, tmp_path, *, pixel_samples: int = 1):
-    """Random survey ``seed`` of the family rendered at ``width`` px (``pixel_samples``
-    rays a side per pixel) and run: (state, score)."""
+def _run_survey(seed: int | str, width: int, tmp_path, *, pixel_samples: int = 1):
+    """Survey ``seed`` of the family (a random one's seed, or a configuration's name)
+    rendered at ``width`` px (``pixel_samples`` rays a side per pixel) and run: (state, score)."""
     from recon3d.pipeline.run import run
     from recon3d.synthetic.render import Lighting
 
     folder = tmp_path / "scene"
-    write_block_scene(folder, random_spec(seed).with_width(width), lighting=Lighting(pixel_samples=pixel_samples))
+    spec = CONFIGURATIONS[seed] if isinstance(seed, str) else random_spec(seed)
+    write_block_scene(folder, spec.with_width(width), lighting=Lighting(pixel_samples=pixel_samples))
     state = run(folder, tmp_path / "out", checkpoints=folder / "truth" / "checkpoints.csv")
     return state, _score(folder, state)
 
@@ -310,6 +311,19 @@ def test_a_patch_of_mismatches_under_the_ground_ties_is_no_terrain(tmp_path):
     depth = state.dtm.sample(np.asarray(las.x), np.asarray(las.y), bilinear=False) - np.asarray(las.z)
     c = np.asarray(las.classification)
     assert np.sum((c == 2) & (depth > 1.5)) < 50 and np.sum((c == 7) & (depth > 1.5)) > 300
+
+
+@pytest.mark.slow
+def test_roofs_spilled_onto_the_street_are_outvoted_beside_the_buildings(tmp_path):
+    """nadir_pair rendered with 3 x 3 rays per pixel: the matcher carries a point or two
+    of a roof onto the street beside its wall, and each pair's highest point kept them
+    (tolerant DSM RMS 0.520 m). Outside the footprints and the crowns each pair's second
+    highest point sets the cell (0.475 m, the issue's 0.5 m target); the roofs inside
+    stay as they were."""
+    state, score = _run_survey("nadir_pair", 1000, tmp_path, pixel_samples=3)
+    assert score["dsm_rms_tolerant"] <= 0.50, score
+    assert score["roof_rms"] <= 0.25, score
+    assert state.auto["dsm.second_highest_beside_buildings"]["value"] > 10_000
 
 
 @pytest.mark.slow

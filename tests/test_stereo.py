@@ -449,6 +449,29 @@ def test_grid_stereo_outvotes_spill_and_guesses():
     np.testing.assert_allclose(single, [[30.0, 5.0], [7.0, 12.0]])
 
 
+def test_the_second_highest_point_of_a_pair_drops_one_stray_point():
+    """``per_source="second"``: of a pair's 3 or more points in a cell the second
+    highest, so one point of a roof spilled onto the street does not set the cell; of
+    fewer, the highest (two points cannot tell a stray one)."""
+    from affine import Affine
+
+    from recon3d.terrain.dsm import grid_stereo
+
+    transform = Affine(1.0, 0.0, 0.0, 0.0, -1.0, 1.0)  # 1 x 3 cells
+    pts = np.array([
+        [0.5, 0.5, 10.0], [0.4, 0.4, 10.1], [0.6, 0.6, 10.2], [0.5, 0.4, 16.0],  # street, one roof point
+        [1.5, 0.5, 10.0], [1.5, 0.4, 16.0],  # two points: the highest stays
+        [2.5, 0.5, 16.0], [2.4, 0.5, 16.1], [2.6, 0.5, 10.0],  # the roof's edge over the street
+    ])
+    highest, second = grid_stereo(pts, transform, (1, 3), observed=np.ones(len(pts), bool),
+                                  source=np.ones(len(pts), int), per_source=("max", "second"))
+    np.testing.assert_allclose(highest, [[16.0, 16.0, 16.1]])
+    np.testing.assert_allclose(second, [[10.2, 16.0, 16.0]])
+    # the same grid asked alone
+    np.testing.assert_allclose(grid_stereo(pts, transform, (1, 3), observed=np.ones(len(pts), bool),
+                                           per_source="second"), second)
+
+
 def test_three_images_make_a_better_dsm_than_two(stereo_run, tmp_path):
     """A strip of three images (three pairs) over the test city: each pair's points keep
     their pair in cloud.laz (point_source_id), the DSM takes the median of the pairs,

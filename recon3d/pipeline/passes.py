@@ -105,10 +105,11 @@ def cover(bounds: tuple, transform: Affine, shape: tuple[int, int], margin: int 
     return slice(max(r0, 0), min(r1, shape[0])), slice(max(c0, 0), min(c1, shape[1]))
 
 
-def _highest(spec: Spec, cloud: PointCloud, grid: Raster) -> np.ndarray:
+def _highest(spec: Spec, cloud: PointCloud, grid: Raster, per_source: str | tuple[str, ...] | None = None):
     """(rows, cols) float64 DSM cells of ``cloud`` on ``grid`` before hole filling: the
     highest surface point (not noise) per cell, or for stereo the highest (frame) or
-    median (satellite) observed point per pair and the median over the pairs."""
+    median (satellite) observed point per pair and the median over the pairs
+    (``per_source`` chooses another, or several: see :func:`~recon3d.terrain.dsm.grid_stereo`)."""
     keep = dsm_stage.surface_points(cloud)
     xyz, a = cloud.xyz[keep], cloud.attributes
     if spec.stereo and "observed" in a:
@@ -116,7 +117,7 @@ def _highest(spec: Spec, cloud: PointCloud, grid: Raster) -> np.ndarray:
         return dsm_stage.grid_stereo(
             xyz, grid.transform, grid.shape, observed=(a["observed"] > 0)[keep],
             source=None if source is None else source[keep],
-            per_source="median" if spec.stereo == "satellite" else "max", origin=grid.origin,
+            per_source=per_source or ("median" if spec.stereo == "satellite" else "max"), origin=grid.origin,
         )
     return dsm_stage.grid_points(xyz, grid.transform, grid.shape, reducer="max", origin=grid.origin)
 
@@ -125,16 +126,21 @@ def _highest(spec: Spec, cloud: PointCloud, grid: Raster) -> np.ndarray:
 
 
 def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tuple[int, int]) -> dict:
-    """The tile's cells of the DSM before hole filling, its point counts and the lowest
-    points of the ground filter's minimum surface (on its own grid: ``zmin`` over the
-    window ``zmin_origin`` of it that the core covers, to be merged by minimum)."""
+    """The tile's cells of the DSM before hole filling (frame stereo: also from each pair's
+    second highest point), its point counts and the lowest points of the ground filter's
+    minimum surface (on its own grid: ``zmin`` over the window ``zmin_origin`` of it that
+    the core covers, to be merged by minimum)."""
     pts = spec.core(tile)
     cloud, a = pts.cloud, pts.cloud.attributes
     grid = spec.grid(tile)
     T, shape, origin = grid.transform, grid.shape, grid.origin
     keep = dsm_stage.surface_points(cloud)
     xyz = cloud.xyz[keep]
-    out: dict[str, Any] = {"dsm": _highest(spec, cloud, grid)}
+    out: dict[str, Any] = {}
+    if spec.stereo == "frame" and "observed" in a:  # the second for the cells beside buildings, see make_dsm
+        out["dsm"], out["dsm_second"] = _highest(spec, cloud, grid, ("max", "second"))
+    else:
+        out["dsm"] = _highest(spec, cloud, grid)
     if spec.stereo and "observed" in a:
         out["observed"] = dsm_stage.grid_points(cloud.xyz[a["observed"] > 0], T, shape, reducer="count", origin=origin)
         if "consistent" in a:

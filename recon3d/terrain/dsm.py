@@ -184,8 +184,8 @@ def _floor_index(v: np.ndarray, origin: float, step: float) -> np.ndarray:
 
 def grid_stereo(
     xyz: np.ndarray, transform, shape: tuple[int, int], *, observed: np.ndarray, source: np.ndarray | None = None,
-    per_source: str = "max", origin: tuple[int, int] = (0, 0),
-) -> np.ndarray:
+    per_source: str | tuple[str, ...] = "max", origin: tuple[int, int] = (0, 0),
+) -> np.ndarray | tuple[np.ndarray, ...]:
     """Highest point per cell from stereo: observations first, pairs outvoting each other.
 
     Each source (a stereo pair) gives the highest of its observed points in a cell, and
@@ -207,17 +207,19 @@ def grid_stereo(
     observed : (n,) bool
     source : (n,) int, optional
         Which pair each point comes from (one source when omitted).
-    per_source : {"max", "median"}
+    per_source : {"max", "second", "median"} or a tuple of them
         What a source gives a cell: its highest observed point (frame stereo: a
-        building's edge stays on the roof), or the median of them (several points of one
-        pair per cell, as satellite GSD against the cell size gives: the highest of
-        noisy heights would stand a noise sigma too high).
+        building's edge stays on the roof); its second highest when it has 3 or more
+        there ("second": one stray point of a roof spilled onto the street does not set
+        the cell); or the median of them (several points of one pair per cell, as
+        satellite GSD against the cell size gives: the highest of noisy heights would
+        stand a noise sigma too high). A tuple grids the points once per entry.
     origin : (row, col)
         As in :func:`grid_points`.
 
     Returns
     -------
-    (rows, cols) float64
+    (rows, cols) float64, or a tuple of them (one per ``per_source`` entry)
         NaN in cells without points.
     """
     rows, cols = shape
@@ -226,37 +228,46 @@ def grid_stereo(
     inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
     src = np.zeros(len(xyz), np.int64) if source is None else np.asarray(source, np.int64)
     observed = np.asarray(observed, bool)
-    out = np.full(rows * cols, np.nan)
+    reducers = (per_source,) if isinstance(per_source, str) else tuple(per_source)
+    out = np.full((len(reducers), rows * cols), np.nan)
     # observations overwrite guesses; a source's guesses count by their highest point
-    for use, reduce in ((inside & ~observed, "max"), (inside & observed, per_source)):
-        cell, z = _median_over_sources((row * cols + col)[use], src[use], xyz[use, 2], reduce)
-        out[cell] = z
-    return out.reshape(shape)
+    guessed = inside & ~observed
+    cell, heights = _median_over_sources((row * cols + col)[guessed], src[guessed], xyz[guessed, 2], ("max",))
+    out[:, cell] = heights
+    seen = inside & observed
+    cell, heights = _median_over_sources((row * cols + col)[seen], src[seen], xyz[seen, 2], reducers)
+    out[:, cell] = heights
+    grids = tuple(g.reshape(shape) for g in out)
+    return grids[0] if isinstance(per_source, str) else grids
 
 
-def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, per_source: str):
-    """(cells, heights): each source's highest (or median) point per cell, then the
-    median over the sources (of an even count, for ``"max"``, the higher middle value)."""
+def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, reducers: tuple[str, ...]):
+    """(cells, (len(reducers), cells) heights): for each reducer, each source's point
+    per cell it picks, then the median over the sources (of an even count, for
+    ``"max"`` and ``"second"``, the higher middle value: a height a pair saw)."""
     if not len(z):
-        return cell, z
+        return cell, np.empty((len(reducers), 0))
     order = np.lexsort((z, src, cell))  # by cell, then source, then height
     cell, src, z = cell[order], src[order], z[order]
     first = np.r_[0, np.flatnonzero((cell[1:] != cell[:-1]) | (src[1:] != src[:-1])) + 1]
     n = np.diff(np.r_[first, len(cell)])  # points of each (cell, source)
-    if per_source == "max":
-        z = z[first + n - 1]
-    else:
-        z = 0.5 * (z[first + (n - 1) // 2] + z[first + n // 2])
     cell = cell[first]
-    order = np.lexsort((z, cell))
-    cell, z = cell[order], z[order]
     start = np.r_[0, np.flatnonzero(cell[1:] != cell[:-1]) + 1]
     count = np.diff(np.r_[start, len(cell)])
-    if per_source == "max":  # of an even count, the higher middle value: a height a pair saw
-        median = z[start + count // 2]
-    else:
-        median = 0.5 * (z[start + (count - 1) // 2] + z[start + count // 2])
-    return cell[start], median
+    heights = np.empty((len(reducers), len(start)))
+    for k, reducer in enumerate(reducers):
+        if reducer == "max":
+            zs = z[first + n - 1]
+        elif reducer == "second":
+            zs = z[first + n - 1 - (n >= 3)]
+        else:
+            zs = 0.5 * (z[first + (n - 1) // 2] + z[first + n // 2])
+        zs = zs[np.lexsort((zs, cell))]  # the sources of a cell by height; cells stay in order
+        if reducer == "median":
+            heights[k] = 0.5 * (zs[start + (count - 1) // 2] + zs[start + count // 2])
+        else:
+            heights[k] = zs[start + count // 2]
+    return cell[start], heights
 
 
 def fill_small_holes(
