@@ -470,6 +470,8 @@ def test_the_second_highest_point_of_a_pair_drops_one_stray_point():
     # the same grid asked alone
     np.testing.assert_allclose(grid_stereo(pts, transform, (1, 3), observed=np.ones(len(pts), bool),
                                            per_source="second"), second)
+    with pytest.raises(ValueError, match="'highest'"):
+        grid_stereo(pts, transform, (1, 3), observed=np.ones(len(pts), bool), per_source="highest")
 
 
 def test_three_images_make_a_better_dsm_than_two(stereo_run, tmp_path):

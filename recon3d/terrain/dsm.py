@@ -260,8 +260,10 @@ def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, reduc
             zs = z[first + n - 1]
         elif reducer == "second":
             zs = z[first + n - 1 - (n >= 3)]
-        else:
+        elif reducer == "median":
             zs = 0.5 * (z[first + (n - 1) // 2] + z[first + n // 2])
+        else:
+            raise ValueError(f"per_source {reducer!r}: expected 'max', 'second' or 'median'")
         zs = zs[np.lexsort((zs, cell))]  # the sources of a cell by height; cells stay in order
         if reducer == "median":
             heights[k] = 0.5 * (zs[start + (count - 1) // 2] + zs[start + count // 2])
