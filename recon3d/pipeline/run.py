@@ -152,6 +152,12 @@ class Surface:
     ground_surface: tuple | None = None  # lowest trusted point per cell of the ground filter's grid, its transform
     second: np.ndarray | None = None  # frame stereo: the cells from each pair's second highest point, until used
 
+    @property
+    def matched(self) -> np.ndarray:
+        """(rows, cols) bool: cells holding a matched (observed) point."""
+        cells = np.isfinite(self.dsm.data) & ~self.filled
+        return cells if self.unobserved is None else cells & ~self.unobserved
+
 
 @dataclass
 class Terrain:
@@ -173,6 +179,11 @@ class Evidence:
     plane_tolerance: float
     density: float  # first returns per square metre
     crowns: np.ndarray | None = None  # cells of detected blobs found to be tree crowns after roof modelling
+
+    @property
+    def vegetated(self) -> np.ndarray:
+        """(rows, cols) bool: cells whose upper points are mostly vegetation."""
+        return np.nan_to_num(self.share) > 0.5
 
 
 @dataclass
@@ -820,8 +831,7 @@ def _lower_unseen_guesses(r: Run, dtm: Raster, noise: float) -> None:
 
     sf, u = r.surface, r.units
     unjudged = sf.unobserved if sf.consistent is None else sf.unobserved & ~sf.consistent
-    matched = np.isfinite(sf.dsm.data) & ~sf.filled & ~sf.unobserved
-    lower = coverage.unseen_guesses(r.source.scene, r.source.stereo["pairs"], sf.dsm, dtm, unjudged, matched, u,
+    lower = coverage.unseen_guesses(r.source.scene, r.source.stereo["pairs"], sf.dsm, dtm, unjudged, sf.matched, u,
                                     tolerance=max(u.height(0.5), 3.0 * noise), min_area=u.area(4.0))
     sf.dsm.data[lower] = dtm.data[lower]
     r.auto["dsm.hidden_ground"] = {
@@ -843,8 +853,7 @@ def _check_matched_in_view(r: Run, noise: float) -> None:
     sf, u = r.surface, r.units
     if r.stereo != "frame" or sf.common_area is None:
         return
-    matched = np.isfinite(sf.dsm.data) & ~sf.filled & ~sf.unobserved
-    split = coverage.unmatched_in_view(r.source.scene, r.source.stereo["pairs"], sf.dsm, sf.common_area, matched,
+    split = coverage.unmatched_in_view(r.source.scene, r.source.stereo["pairs"], sf.dsm, sf.common_area, sf.matched,
                                        tolerance=max(u.height(0.5), 3.0 * noise))
     r.auto["stereo"]["common_area"].update(split)
     if split["matched_of_visible_percent"] < coverage.MIN_MATCHED_OF_VISIBLE:
@@ -963,10 +972,7 @@ def _second_beside_buildings(r: Run, labels: np.ndarray) -> None:
     and raised the RMS on 4 of the 25 (random_53 by 0.02 m)."""
     sf, t = r.surface, r.terrain
     second, data = sf.second, sf.dsm.data
-    crowns = np.nan_to_num(r.evidence.share) > 0.5
-    lower = (labels == 0) & ~crowns & ~sf.filled & (second < data)  # NaN compares False
-    if sf.unobserved is not None:
-        lower &= ~sf.unobserved
+    lower = (labels == 0) & ~r.evidence.vegetated & sf.matched & (second < data)  # NaN compares False
     data[lower] = np.fmax(second[lower], t.dtm.data[lower])
     t.ndsm = dtm_stage.make_ndsm(sf.dsm, t.dtm)
     sf.second = None
@@ -1462,7 +1468,7 @@ def detect_changes(r: Run) -> None:
     q.changes = change.detect_changes(
         r.source.old_buildings, r.city, t.ndsm, units=r.units,
         config=change.ChangeParams(height_field=cfg.height_field, height_reference=cfg.height_reference),
-        vegetation=t.ndsm.like((np.nan_to_num(r.evidence.share) > 0.5).astype(np.float32)),
+        vegetation=t.ndsm.like(r.evidence.vegetated.astype(np.float32)),
         density=t.ndsm.like(r.surface.points / g.transform.a**2, product="point density"),
     )
     for message in q.changes.warnings:
