@@ -323,8 +323,14 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     from recon3d.quality.rasterize import surface_at
 
     u, cfg = spec.units, spec.config.buildings
-    pts, core = spec.window(tile, f.buffer) if f.reference_grid is not None else (spec.core(tile), None)
-    own = pts if core is None else pts.subset(core)
+    reference = None
+    if f.reference_grid is None:
+        own = spec.core(tile)
+    else:  # the buffered points judge the reference cells, then go before the core's work begins
+        pts, core = spec.window(tile, f.buffer)
+        reference = _reference_cells(spec, tile, pts, f.reference_grid)
+        own = pts.subset(core)
+        del pts, core
     cloud, xyz = own.cloud, own.cloud.xyz
     is_ground = load(spec, tile, "ground", "is_ground")["is_ground"]
     decided = load(spec, tile, "vegetation_decide", "vegetation", "roughness")
@@ -358,7 +364,7 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     out: dict[str, Any] = {"classes": point_classes}
     out["scan"] = _scan(spec, tile, own, f)
     if spec.summary.provider_classes:
-        out.update(_provider_scores(spec, tile, pts, core, own, point_classes, f))
+        out.update(_provider_scores(spec, own, point_classes, f, reference))
     out.update(_records(own, point_classes))
     return out
 
@@ -377,9 +383,9 @@ def _scan(spec: Spec, tile: Tile, own: TilePoints, f: Finish) -> np.ndarray:
     return _highest(spec, scanned, spec.grid(tile))
 
 
-def _provider_scores(spec: Spec, tile: Tile, pts: TilePoints, core: np.ndarray, own: TilePoints,
-                     point_classes: np.ndarray, f: Finish) -> dict:
-    """The counts and errors of the report's comparisons with the provider's classes."""
+def _provider_scores(spec: Spec, own: TilePoints, point_classes: np.ndarray, f: Finish, reference: tuple) -> dict:
+    """The counts and errors of the report's comparisons with the provider's classes;
+    ``reference``: the tile's :func:`_reference_cells`."""
     u = spec.units
     cloud = own.cloud
     ref = cloud.classification
@@ -394,7 +400,7 @@ def _provider_scores(spec: Spec, tile: Tile, pts: TilePoints, core: np.ndarray, 
         "ground_order": own.order[ground],
         "ground_errors": f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2],
     }
-    window, valid, building = _reference_cells(spec, tile, pts, f.reference_grid)
+    window, valid, building = reference
     out.update(reference_window=window, reference_valid=valid, reference_building=building)
     return out
 

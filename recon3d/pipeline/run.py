@@ -37,6 +37,7 @@ from recon3d import __version__
 from recon3d.buildings import align, blocks, detect, lod, vegetation
 from recon3d.buildings.measure import measure_heights
 from recon3d.config import PipelineConfig
+from recon3d.core.accuracy import AccuracyReport
 from recon3d.core.city import Building, CityModel
 from recon3d.core.geo import LocalFrame, crs_units
 from recon3d.core.dates import today
@@ -1329,7 +1330,6 @@ MAX_VEGETATION_AS_BUILDING = 5.0
 
 def evaluate_products(r: Run) -> None:
     """Every point's class (cloud.laz), and the accuracy tables of the products."""
-    from recon3d.core.accuracy import AccuracyReport
     from recon3d.quality import buildings as building_quality
     from recon3d.quality import evaluate
 
@@ -1339,37 +1339,9 @@ def evaluate_products(r: Run) -> None:
     reference_grid = None
     if summary.provider_classes:
         reference_grid = building_quality.ReferenceGrid.over(*sf.surface_bounds, u.length(0.25))
-    shared = _finish_shared(r)
-    paths = r.passes["finish"] = r.tiles("finish", passes.finish,
-                                         [(_finish_args(r, tile, shared, reference_grid),) for tile in g.tiles])
+    paths = r.passes["finish"] = _finish_pass(r, reference_grid)
     if summary.provider_classes:
-        counts = {k: 0 for k in ("vegetation_counts", "coverage_counts")}
-        order, errors = [], []
-        valid_grid = np.zeros(reference_grid.shape, bool)  # each tile's block in place
-        ref_grid = np.zeros(reference_grid.shape, bool)
-        for path in paths:
-            with np.load(path) as data:
-                for k in counts:
-                    counts[k] = counts[k] + data[k]
-                order.append(data["ground_order"])
-                errors.append(data["ground_errors"])
-                r0, r1, c0, c1 = data["reference_window"]
-                valid_grid[r0:r1, c0:c1] = data["reference_valid"]
-                ref_grid[r0:r1, c0:c1] = data["reference_building"]
-        area = building_quality.score_against_reference(
-            [b.footprint for b in r.city if b.solids], reference_grid, ref_grid, valid_grid, units=u)
-        area.update(building_quality.vegetation_as_building(*(int(v) for v in counts["vegetation_counts"])))
-        r.report["buildings_vs_provider_area"] = area
-        share = area["vegetation_as_building_percent"]
-        if share is not None and share > MAX_VEGETATION_AS_BUILDING:
-            r.warn(f"{share:.1f} % of the points the input's own classes call vegetation are building in cloud.laz "
-                   f"(expected under {MAX_VEGETATION_AS_BUILDING:g} %): trees may have been taken for buildings; "
-                   "the report's building detection compares both")
-        order, errors = np.concatenate(order), np.concatenate(errors)
-        errors = errors[np.argsort(order, kind="stable")]  # the survey's order, whatever the tiling
-        tables.append(AccuracyReport.from_errors(errors, product="DTM", reference="provider ground points",
-                                                 metres_per_unit=u.vertical))
-        r.report["buildings_vs_provider"] = evaluate.coverage_scores(counts["coverage_counts"])
+        tables.append(_against_provider_classes(r, paths, reference_grid))
     if r.inputs.truth_dsm is not None:
         from recon3d.io.geotiff import read_raster
 
@@ -1414,6 +1386,49 @@ def evaluate_products(r: Run) -> None:
         "lods": {k: sum(k in b.solids for b in r.city) for k in sorted({k for b in r.city for k in b.solids})},
         "blocks": len(r.city.blocks()),  # split at height jumps: Building + BuildingParts
     }
+
+
+def _finish_pass(r: Run, reference_grid) -> list[Path]:
+    """The tiles' last pass (:func:`passes.finish`); what they share is let go with it."""
+    shared = _finish_shared(r)
+    return r.tiles("finish", passes.finish, [(_finish_args(r, tile, shared, reference_grid),) for tile in r.grid.tiles])
+
+
+def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> AccuracyReport:
+    """The report's comparisons with the input's own classes (building area, vegetation
+    taken for building, buildings found) and the DTM's table at the provider's ground points."""
+    from recon3d.quality import buildings as building_quality
+    from recon3d.quality import evaluate
+
+    counts = {k: 0 for k in ("vegetation_counts", "coverage_counts")}
+    valid_grid = np.zeros(reference_grid.shape, bool)  # each tile's block in place
+    ref_grid = np.zeros(reference_grid.shape, bool)
+    for path in paths:
+        with np.load(path) as data:
+            for k in counts:
+                counts[k] = counts[k] + data[k]
+            r0, r1, c0, c1 = data["reference_window"]
+            valid_grid[r0:r1, c0:c1] = data["reference_valid"]
+            ref_grid[r0:r1, c0:c1] = data["reference_building"]
+    area = building_quality.score_against_reference(
+        [b.footprint for b in r.city if b.solids], reference_grid, ref_grid, valid_grid, units=r.units)
+    del valid_grid, ref_grid
+    area.update(building_quality.vegetation_as_building(*(int(v) for v in counts["vegetation_counts"])))
+    r.report["buildings_vs_provider_area"] = area
+    share = area["vegetation_as_building_percent"]
+    if share is not None and share > MAX_VEGETATION_AS_BUILDING:
+        r.warn(f"{share:.1f} % of the points the input's own classes call vegetation are building in cloud.laz "
+               f"(expected under {MAX_VEGETATION_AS_BUILDING:g} %): trees may have been taken for buildings; "
+               "the report's building detection compares both")
+    r.report["buildings_vs_provider"] = evaluate.coverage_scores(counts["coverage_counts"])
+    order, errors = [], []
+    for path in paths:
+        with np.load(path) as data:
+            order.append(data["ground_order"])
+            errors.append(data["ground_errors"])
+    errors = np.concatenate(errors)[np.argsort(np.concatenate(order), kind="stable")]  # the survey's order
+    return AccuracyReport.from_errors(errors, product="DTM", reference="provider ground points",
+                                      metres_per_unit=r.units.vertical)
 
 
 def _finish_shared(r: Run) -> tuple:

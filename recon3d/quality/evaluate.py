@@ -294,13 +294,13 @@ def model_check_cells(dsm: Raster, model_dsm: Raster, labels: np.ndarray, vegeta
 
 def roof_errors(labels: np.ndarray, model_minus_dsm: np.ndarray, n: int) -> np.ndarray:
     """(n,) RMS of the model DSM minus the measured DSM over each building's cells
-    (``labels`` 1..n), NaN where a building has no cell with both; in the rasters' units."""
-    from scipy import ndimage
-
-    labels = np.where(np.isfinite(model_minus_dsm), labels, 0)
-    index = np.arange(1, n + 1)
-    sq = np.nan_to_num(model_minus_dsm) ** 2
+    (``labels`` 1..n), NaN where a building has no cell with both; in the rasters' units.
+    Only the buildings' cells are gathered: the memory follows the buildings, not the grid."""
     if not n:
         return np.zeros(0)
+    cells = (labels > 0) & np.isfinite(model_minus_dsm)
+    label = labels[cells]
+    sums = np.bincount(label, weights=model_minus_dsm[cells] ** 2, minlength=n + 1)[1:n + 1]
+    counts = np.bincount(label, minlength=n + 1)[1:n + 1]
     with np.errstate(invalid="ignore"):
-        return np.sqrt(np.asarray(ndimage.mean(sq, labels, index), np.float64))
+        return np.sqrt(sums / counts)

@@ -34,7 +34,7 @@ def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     -------
     (rows, cols) float64
     """
-    out = np.where(known, values, np.nan).astype(np.float64)
+    out = np.where(known, values, np.nan).astype(np.float64, copy=False)
     gaps = ~known
     if not gaps.any() or not known.any():
         return out if known.any() else np.full(values.shape, np.nan)
@@ -85,6 +85,8 @@ def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 #: Candidate cells rasterised at a time, bounding memory.
 RASTER_CHUNK = 1 << 20
+#: Triangle rows whose spans are computed at a time (a dozen float64 arrays each).
+ROW_CHUNK = 1 << 18
 
 
 def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, heights: np.ndarray) -> None:
@@ -104,7 +106,9 @@ def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, he
     bottom vertex) and the short edge of that row. With integer vertices a cell that is
     not on an edge lies at least 1 / rows columns inside or outside it, far more than the
     rounding the bounds are widened by, so a cell on a shared edge is in both triangles
-    (and takes either's plane, equal there) and no other cell is in two.
+    (and takes either's plane, equal there) and no other cell is in two. The triangles
+    go a batch of about :data:`ROW_CHUNK` rows at a time, in order, so the memory is
+    bounded whatever the gaps' size and the cells are written in the same order.
     """
     v = corners.astype(np.float64)
     order = np.argsort(v[..., 0], axis=1, kind="stable")  # vertices top to bottom
@@ -115,13 +119,22 @@ def _rasterise_planes(out: np.ndarray, todo: np.ndarray, corners: np.ndarray, he
     keep = area != 0
     r, c, z, area = r[keep], c[keep], z[keep], area[keep]
     plane = _planes(r, c, z, area)
+    height = r[:, 2].astype(np.int64) - r[:, 0].astype(np.int64) + 1
+    for start, stop in _chunks(np.cumsum(height), ROW_CHUNK):
+        batch = slice(start, stop)
+        _rasterise_batch(out, todo, r[batch], c[batch], plane[batch], height[batch])
+
+
+def _rasterise_batch(out: np.ndarray, todo: np.ndarray, r: np.ndarray, c: np.ndarray, plane: np.ndarray,
+                     height: np.ndarray) -> None:
+    """:func:`_rasterise_planes` for (t, 3) vertex rows and columns sorted top to bottom,
+    their (t, 3) planes and (t,) row counts."""
     top = r[:, 0].astype(np.int64)
-    height = r[:, 2].astype(np.int64) - top + 1
     first, last = _scanline_spans(r, c, height)
     count = np.maximum(last - first + 1, 0)
     tri = np.repeat(np.arange(len(r)), height)  # one (triangle, row) pair each
     row = np.repeat(top - (np.cumsum(height) - height), height) + np.arange(len(tri))
-    for start, stop in _chunks(np.cumsum(count)):
+    for start, stop in _chunks(np.cumsum(count), RASTER_CHUNK):
         n = count[start:stop]
         col = np.repeat(first[start:stop] - (np.cumsum(n) - n), n) + np.arange(int(n.sum()))
         i = np.repeat(row[start:stop], n)
@@ -173,10 +186,10 @@ def _planes(r: np.ndarray, c: np.ndarray, z: np.ndarray, area: np.ndarray) -> np
     return np.column_stack([a, b, z[:, 0] - a * r[:, 0] - b * c[:, 0]])
 
 
-def _chunks(ends: np.ndarray):
-    """(start, stop) ranges of pairs whose cells (cumulative counts ``ends``) add up to about RASTER_CHUNK each."""
+def _chunks(ends: np.ndarray, size: int):
+    """(start, stop) ranges of items whose cumulative counts ``ends`` add up to about ``size`` each."""
     total = int(ends[-1]) if len(ends) else 0
-    cuts = np.searchsorted(ends, np.arange(RASTER_CHUNK, total, RASTER_CHUNK), side="right")
+    cuts = np.searchsorted(ends, np.arange(size, total, size), side="right")
     bounds = np.unique(np.r_[0, cuts, len(ends)])
     return zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
 
@@ -187,11 +200,12 @@ def fill_nearest(data: np.ndarray) -> np.ndarray:
     if not missing.any():
         return data.astype(np.float64)
     idx = ndimage.distance_transform_edt(missing, return_distances=False, return_indices=True)
-    return data[tuple(idx)].astype(np.float64)
+    return data[tuple(idx)].astype(np.float64, copy=False)
 
 
 def _fill_small_gaps(out: np.ndarray, gaps: np.ndarray, max_cells: int = 4):
-    """Fill gaps of at most ``max_cells`` cells with the mean of their known 3 x 3 neighbours.
+    """Fill gaps of at most ``max_cells`` cells with the mean of their known 3 x 3 neighbours,
+    in ``out`` (in place); ``out`` and the gaps left.
 
     Every cell of such a gap touches known cells, and for gaps this small the
     neighbourhood mean equals linear interpolation to within the data's noise; it
@@ -199,14 +213,18 @@ def _fill_small_gaps(out: np.ndarray, gaps: np.ndarray, max_cells: int = 4):
     """
     labels, n = ndimage.label(gaps)
     small = (np.bincount(labels.ravel()) <= max_cells)[labels] & gaps
+    del labels
     if not small.any():
         return out, gaps
-    known = (~gaps).astype(np.float64)
-    kernel = np.ones((3, 3))
-    total = ndimage.convolve(np.where(gaps, 0.0, out), kernel, mode="constant")
-    count = ndimage.convolve(known, kernel, mode="constant")
-    out = out.copy()
-    out[small] = total[small] / count[small]
+    row, col = np.nonzero(small)
+    total, count = np.zeros(len(row)), np.zeros(len(row))
+    for dr, dc in np.ndindex(3, 3):  # the 3 x 3 neighbours, gathered at the small gaps' cells only
+        r, c = row + dr - 1, col + dc - 1
+        on = (r >= 0) & (r < out.shape[0]) & (c >= 0) & (c < out.shape[1])
+        on[on] &= ~gaps[r[on], c[on]]
+        total[on] += out[r[on], c[on]]
+        count[on] += 1.0
+    out[row, col] = total / count
     return out, gaps & ~small
 
 
@@ -308,14 +326,13 @@ def dtm_from_cells(
         raise InputError(
             f"only {n} ground points were found; a DTM needs at least 3 (is the input a rooftop-only crop?)"
         )
-    mean = mean.copy()
     known = np.isfinite(mean)
     if noise > 0:
         mean = _smooth_noise(mean, known, count, noise)
     if constraints is not None and len(constraints):
         fixed = grid_points(constraints, grid.transform, grid.shape, reducer="mean")
         has = np.isfinite(fixed)
-        mean[has], known = fixed[has], known | has
+        mean, known = np.where(has, fixed, mean), known | has
     dtm = fill_gaps(mean, known)
     return grid.like(dtm, product="DTM", method="per-cell mean of ground points, gaps by Delaunay interpolation")
 
