@@ -365,33 +365,30 @@ class LasStore:
         y1 = transform.f + rows.start * transform.e
         y0 = transform.f + rows.stop * transform.e
         b = self.bucket
-        loaded, picks, rows_in, cols_in, offset = [], [], [], [], 0
+        picked, rows_in, cols_in = [], [], []  # only the window's records of each bucket are kept
         for bx in range(math.floor(x0 / b) - 1, math.floor(x1 / b) + 1):
             for by in range(math.floor(y0 / b) - 1, math.floor(y1 / b) + 1):
                 path = self._path(bx, by)
                 if path.exists():
                     rec = self._load(path)
                     row, col = cell_rowcol(_xy(rec), transform)
-                    pick = np.flatnonzero(_in_window(row, col, rows, cols))
-                    if len(pick):
-                        loaded.append(rec)
-                        picks.append(pick + offset)
-                        rows_in.append(row[pick])
-                        cols_in.append(col[pick])
-                        offset += len(rec)
-        if not loaded:
+                    inside = _in_window(row, col, rows, cols)
+                    if inside.any():
+                        picked.append(rec[inside])
+                        rows_in.append(row[inside])
+                        cols_in.append(col[inside])
+                    del rec, row, col, inside
+        if not picked:
             none = np.zeros(0, self.dtype)
             return TilePoints(self._cloud(none), *(np.zeros(0, np.int64) for _ in range(3)))
-        # one gather per field, straight into survey order (no copy of whole records)
-        pick = np.concatenate(picks)
-        order = np.concatenate([r["order"] for r in loaded])[pick]
+        # one gather per field, straight into survey order
+        order = np.concatenate([r["order"] for r in picked])
         sort = np.argsort(order, kind="stable")
-        take = pick[sort]
 
         def field(name: str) -> np.ndarray:
-            return np.concatenate([r[name] for r in loaded])[take]
+            return np.concatenate([r[name] for r in picked])[sort]
 
-        xyz = np.empty((len(take), 3))
+        xyz = np.empty((len(sort), 3))
         for axis, name in enumerate("xyz"):
             xyz[:, axis] = field(name)
         names = [n for n in self.dtype.names if n not in ("x", "y", "z", "order")]
