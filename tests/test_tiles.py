@@ -207,6 +207,19 @@ def test_sorting_on_the_deciding_keys_first_is_lexsort():
         np.testing.assert_array_equal(lexsort_ties(keys, 3), np.lexsort(keys))
 
 
+def test_points_per_metre_of_height_are_counted_as_unique_counts_them():
+    """The histogram of heights behind the gross-error median: counted where the heights
+    span few metres, sorted where a gross error stretches them; np.unique's answer either way."""
+    from recon3d.pipeline.points import _metre_counts
+
+    rng = np.random.default_rng(3)
+    for z in (rng.normal(-3.0, 4.0, 5000), np.r_[rng.normal(20.0, 5.0, 50), 1e7, -2e6], np.array([-0.5])):
+        keys, counts = _metre_counts(z)
+        want_keys, want_counts = np.unique(np.floor(z).astype(np.int64), return_counts=True)
+        np.testing.assert_array_equal(keys, want_keys)
+        np.testing.assert_array_equal(counts, want_counts)
+
+
 @pytest.mark.parametrize("collide", [False, True])
 def test_repeats_of_overlapping_tiles_are_found_exactly(collide, monkeypatch):
     """A point is a repeat when one earlier in the survey has the same x, y, z and GPS

@@ -439,7 +439,7 @@ def _bucket_file(job: tuple) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
                 _append(rec, bucket, folder, index)
                 chunk_lo, chunk_hi = column_bounds(xyz)
                 lo, hi = np.minimum(lo, chunk_lo), np.maximum(hi, chunk_hi)
-                keys, counts = np.unique(np.floor(xyz[:, 2]).astype(np.int64), return_counts=True)
+                keys, counts = _metre_counts(xyz[:, 2])
                 for k, c in zip(keys.tolist(), counts.tolist(), strict=True):
                     heights[k] = heights.get(k, 0) + c
                 read += len(xyz)
@@ -452,12 +452,28 @@ def _bucket_file(job: tuple) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
     return lo, hi, heights
 
 
+def _metre_counts(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The whole metres the heights ``z`` (n,) fall in, ascending, and the points in each:
+    ``np.unique(np.floor(z), return_counts=True)``, counted instead of sorted where the
+    heights span fewer metres than there are points (a gross error makes it sort)."""
+    metre = np.floor(z).astype(np.int64)
+    low = int(metre.min())
+    span = int(metre.max()) - low + 1
+    if span > len(metre):
+        return np.unique(metre, return_counts=True)
+    counts = np.bincount(metre - low, minlength=span)
+    keys = np.flatnonzero(counts)
+    return keys + low, counts[keys]
+
+
 def _append(rec: np.ndarray, bucket: float, folder: Path, index: int) -> None:
     """Append records to the part of file ``index`` of each bucket they fall in."""
     bx = np.floor(rec["x"] / bucket).astype(np.int64)
     by = np.floor(rec["y"] / bucket).astype(np.int64)
     x0, y0 = int(bx.min()), int(by.min())
     key = (bx - x0) * (int(by.max()) - y0 + 1) + (by - y0)  # one integer per bucket: a 1-d sort
+    if key.max() < 1 << 16:  # a chunk spans few buckets: numpy's stable sort of 16-bit keys is a radix sort
+        key = key.astype(np.uint16)
     sort = np.argsort(key, kind="stable")
     key = key[sort]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
