@@ -66,33 +66,23 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     _check_point_count(path)
     try:
         las = laspy.read(path)
-        xyz = _scaled_xyz(las)
+        xyz = np.empty((len(las.points), 3))  # filled one axis at a time: one scaled copy alive at once
+        xyz[:, 0] = las.x
+        xyz[:, 1] = las.y
+        xyz[:, 2] = las.z
     except Exception as exc:  # laspy, lazrs and numpy all raise on a damaged file
         raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
     if len(xyz) == 0:
         raise InputError(f"{path}: the point cloud is empty (0 points)")
-    bounds = column_bounds(xyz)  # NaN or infinity in any coordinate shows in its column's bounds
-    if not (np.isfinite(bounds[0]).all() and np.isfinite(bounds[1]).all()):
+    if not np.isfinite(xyz).all():
         raise InputError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates")
     names = set(las.point_format.dimension_names)
     attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
     file_crs = _header_crs(las, path)
     resolved = resolve_crs(file_crs, crs, path)
     if resolved is not None:
-        check_area_of_use(resolved, *bounds, source=str(path))
+        check_area_of_use(resolved, *column_bounds(xyz), source=str(path))
     return PointCloud(xyz, attributes, resolved)
-
-
-def _scaled_xyz(las: laspy.LasData) -> np.ndarray:
-    """(n, 3) float64 coordinates: the integers times the header's scale plus its offset,
-    written straight into place (laspy's ``las.x`` does the same arithmetic into a copy)."""
-    records, header = las.points.array, las.header
-    xyz = np.empty((len(records), 3))
-    for axis, name in enumerate("XYZ"):
-        column = xyz[:, axis]
-        np.multiply(records[name], header.scales[axis], out=column)
-        column += header.offsets[axis]
-    return xyz
 
 
 #: Suffixes of the point files a folder or a glob of tiles is made of.
