@@ -62,6 +62,7 @@ __all__ = [
     "split_at_steps",
     "split_by_height",
     "step_strength",
+    "vegetation_mask",
 ]
 
 
@@ -95,7 +96,7 @@ def _building_mask(
     ndsm: Raster, vegetation: np.ndarray, config: BuildingsConfig, units: Units, smooth: np.ndarray
 ) -> np.ndarray:
     height = np.nan_to_num(ndsm.data)
-    veg = _vegetation_mask(vegetation)
+    veg = vegetation_mask(vegetation)
     size = max(1, int(round(units.length(config.min_width) / ndsm.resolution)))
     structure = np.ones((size, size), bool)
 
@@ -120,7 +121,7 @@ def _building_mask(
     return ndimage.binary_fill_holes(mask) & raised | mask
 
 
-def _vegetation_mask(vegetation: np.ndarray) -> np.ndarray:
+def vegetation_mask(vegetation: np.ndarray) -> np.ndarray:
     """Vegetation cells from a bool mask or a share of vegetation points (> 0.5)."""
     vegetation = np.asarray(vegetation)
     return vegetation if vegetation.dtype == bool else np.nan_to_num(vegetation) > 0.5

@@ -279,17 +279,17 @@ def landmark_height(dsm: Raster, x: float, y: float, *, search: float, ring: tup
     return {"apex": float(z[row, col]) - base, "top5": top5 - base, "base": base, "row": int(row), "col": int(col)}
 
 
-def model_check_cells(dsm: Raster, model_dsm: Raster, labels: np.ndarray, vegetation_share: np.ndarray,
+def model_check_cells(dsm: Raster, model_dsm: Raster, labels: np.ndarray, vegetated: np.ndarray,
                       filled: np.ndarray) -> np.ndarray:
     """(rows, cols) bool: the building cells on which the model DSM is checked against
     the measured DSM.
 
-    Cells whose top is a tree crown over a roof (``vegetation_share`` above 0.5) measure
+    Cells whose top is a tree crown over a roof (``vegetated``: mostly vegetation points) measure
     the tree, not the model; cells filled from their rim (``filled``: no point, LiDAR
     shadow beside walls) measure nothing.
     """
     valid = np.isfinite(dsm.data) & np.isfinite(model_dsm.data)
-    return (labels > 0) & valid & ~(np.nan_to_num(vegetation_share) > 0.5) & ~filled
+    return (labels > 0) & valid & ~vegetated & ~filled
 
 
 def roof_errors(labels: np.ndarray, model_minus_dsm: np.ndarray, n: int) -> np.ndarray:
