@@ -376,6 +376,12 @@ def test_range_outside_the_image_and_bad_parameters():
         MatchParams(census_window=(9, 9))
     with pytest.raises(InputError, match="p2"):
         MatchParams(p1=10, p2=5)
+    with pytest.raises(InputError, match="sharpen_steps"):
+        MatchParams(sharpen_steps=-1.0)
+    from recon3d.config import StereoConfig
+
+    with pytest.raises(InputError, match="stereo.sharpen_steps"):
+        StereoConfig(sharpen_steps=-0.5)
     assert isinstance(InputError("x"), ValueError)
 
 
@@ -513,3 +519,76 @@ def test_faces_by_colour_split_the_hole_where_the_roof_colour_starts():
     disp, background, image = _ridge_scene(35)
     image[:, 35:50] = 20
     assert not faces_by_colour(disp, background, image)[0].any()
+
+
+def _raised_block_pair(seed: int = 5):
+    """A colour pair of random texture: ground at 4 px, a block at 20 px over columns
+    100..159 of rows 30..89 (left image); the left image built from the right one, so
+    every left pixel has its match."""
+    rng = np.random.default_rng(seed)
+    h, w, d_ground, d_roof = 120, 220, 4, 20
+    right = cv2.GaussianBlur(rng.uniform(0, 255, (h, w, 3)).astype(np.float32), (0, 0), 0.7)
+    truth = np.full((h, w), float(d_ground), np.float32)
+    truth[30:90, 100:160] = d_roof
+    cols = np.arange(w)[None, :] - truth.astype(int)
+    left = right[np.arange(h)[:, None], np.clip(cols, 0, w - 1)]
+    return left, right, truth
+
+
+def test_sharpen_steps_gives_a_roof_carried_onto_the_street_back_to_the_street():
+    from recon3d.stereo.match import sharpen_steps
+
+    left, right, truth = _raised_block_pair()
+    disp = truth.copy()
+    disp[30:90, 97:100] = 20.0  # the census window's fattening: 3 street pixels at roof height
+    disp[30:90, 160:162] = 20.0
+    disp[:, :24] = np.nan  # no match left of the right image
+    changed = sharpen_steps(disp, left, right, ratio=1.2)
+    np.testing.assert_array_equal(disp[30:90, 97:100], 4.0)
+    np.testing.assert_array_equal(disp[30:90, 160:162], 4.0)
+    # the roof keeps all but its outermost pixels, whose 3 x 3 windows straddle the wall
+    np.testing.assert_array_equal(disp[31:89, 101:159], 20.0)
+    assert 5 * 60 <= changed <= 5 * 60 + 2 * 60 + 2 * 58
+    # without the ratio's lean to the lower side, the street pixels still go back
+    disp = truth.copy()
+    disp[30:90, 97:100] = 20.0
+    disp[:, :24] = np.nan
+    sharpen_steps(disp, left, right, ratio=1.0)
+    assert np.mean(disp[30:90, 97:100] == 4.0) > 0.9
+
+
+def test_sharpen_steps_leaves_a_uniform_roof_that_its_disparity_explains_well():
+    """On a roof of one flat colour every disparity matches about as well, sensor noise
+    deciding: the pixel's own match, no worse than the pair's typical one, keeps it."""
+    from recon3d.stereo.match import sharpen_steps
+
+    left, right, truth = _raised_block_pair()
+    roof = truth == 20.0
+    left[roof] = (200.0, 60.0, 40.0)
+    right[30:90, 80:140] = (200.0, 60.0, 40.0)  # where the left roof's matches land
+    rng = np.random.default_rng(1)
+    left += rng.normal(0.0, 3.0, left.shape).astype(np.float32)
+    right += rng.normal(0.0, 3.0, right.shape).astype(np.float32)
+    disp = truth.copy()
+    disp[:, :24] = np.nan
+    sharpen_steps(disp, left, right, ratio=1.2)
+    np.testing.assert_array_equal(disp[31:89, 101:159], 20.0)
+    # textured street pixels wrong by 10 px (within the window's reach of the street):
+    # the lower side wins
+    left, right, truth = _raised_block_pair()
+    disp = truth.copy()
+    disp[30:90, 97:100] = 14.0
+    disp[:, :24] = np.nan
+    sharpen_steps(disp, left, right, ratio=1.2)
+    np.testing.assert_array_equal(disp[30:90, 97:100], 4.0)
+
+
+def test_match_reports_the_pixels_it_gives_back_to_the_lower_side():
+    """``MatchParams.sharpen_steps`` end to end: off by default, and when on, run.json's
+    ``sharpened_percent`` says how much of the map it changed."""
+    left, right, _ = _raised_block_pair()
+    params = MatchParams(min_disparity=0, max_disparity=32, fill_foreground=True)
+    plain = match(left, right, params)
+    sharp = match(left, right, dataclasses.replace(params, sharpen_steps=1.2), guide=left, guide_right=right)
+    assert "sharpened_percent" not in plain.params
+    assert 0 < sharp.params["sharpened_percent"] < 1.0

@@ -202,8 +202,9 @@ def _match_pair(scene, i, j, points, top, config, bounds, warn) -> tuple[PointCl
     # frame pairs: a roof face foreshortened in one view is missed beside the ground its
     # building hides; see MatchParams.fill_foreground
     params = MatchParams(min_disparity=dmin, max_disparity=dmax, engine=config.engine, slant=slant,
-                         fill_foreground=True)
-    result = match(left, right, params, guide=pair.color, low=low, high=high, weight=weight)
+                         fill_foreground=True, sharpen_steps=config.sharpen_steps)
+    result = match(left, right, params, guide=pair.color, guide_right=pair.color_right, low=low, high=high,
+                   weight=weight)
     # A filled-in disparity is a guess, even where the images agree with it: beside walls
     # such agreement is often chance, and carried the roof onto the street in 62 % of the
     # spilled cells of a rendered survey. Agreement still tells a steep or shadowed roof
@@ -230,7 +231,8 @@ def _match_pair(scene, i, j, points, top, config, bounds, warn) -> tuple[PointCl
         "disparity_range": {"value": [dmin, dmax], "reason": pair.range_reason},
         "matched_percent": round(100.0 * float(matched.sum()) / max(1, int(overlap.sum())), 2),
         "density_percent": round(100.0 * float(np.mean(np.isfinite(result.disparity[overlap]))), 1) if overlap.any() else 0.0,
-        "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine", "foreground_percent")
+        "matching": {k: result.params[k] for k in ("disparity_range_searched", "seconds", "engine", "sharpened_percent",
+                                                   "foreground_percent")
                      if k in result.params},
         "slant": {"value": slant, "reason": slant_reason},
         "self_check": {k: v for k, v in check.items() if k != "uncovered"},

@@ -90,6 +90,9 @@ class RectifiedPair:
         pixels (``"left"``, ``"right"``: (rows, cols, 2) float64), fixed when the images
         were resampled: :meth:`to_original` reads it, so a later change of the pair's
         parameters shows as a reprojection error instead of passing unseen.
+    color_right : (H, W, 3) uint8 or None
+        The rectified right image in colour (RGB), for the matcher's colour tests
+        (``MatchParams.sharpen_steps``).
     """
 
     left: np.ndarray
@@ -109,6 +112,7 @@ class RectifiedPair:
     range_reason: str = ""
     parallax: dict = field(default_factory=dict)
     resampled: dict = field(default_factory=dict)
+    color_right: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -379,11 +383,11 @@ def rectify_pair(
     cx_right = cx_left + shift
     size = (width, height)
     left, color, valid_left = _remap(image_a, a, rotation, focal, cx_left, cy, size)
-    right, _, valid_right = _remap(image_b, b, rotation, focal, cx_right, cy, size)
+    right, color_right, valid_right = _remap(image_b, b, rotation, focal, cx_right, cy, size)
     d_lo, d_hi = math.floor(lo - shift), math.ceil(hi - shift) + 1
     pair = RectifiedPair(
         left, right, color, valid_left, valid_right, a, b, rotation, focal, cx_left, cx_right, cy, baseline,
-        (d_lo, d_hi), reason,
+        (d_lo, d_hi), reason, color_right=color_right,
     )
     pair.freeze_resampling()
     pair.parallax = measure_parallax(left, right)
