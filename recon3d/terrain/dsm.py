@@ -207,13 +207,15 @@ def grid_stereo(
     observed : (n,) bool
     source : (n,) int, optional
         Which pair each point comes from (one source when omitted).
-    per_source : {"max", "second", "median"} or a tuple of them
+    per_source : {"max", "median", "upper_median"} or a tuple of them
         What a source gives a cell: its highest observed point (frame stereo: a
-        building's edge stays on the roof); its second highest when it has 3 or more
-        there ("second": one stray point of a roof spilled onto the street does not set
-        the cell); or the median of them (several points of one pair per cell, as
-        satellite GSD against the cell size gives: the highest of noisy heights would
-        stand a noise sigma too high). A tuple grids the points once per entry.
+        building's edge stays on the roof); the median of them (several points of one
+        pair per cell, as satellite GSD against the cell size gives: the highest of
+        noisy heights would stand a noise sigma too high); or the higher of the two
+        middle points of an even count, a height the pair saw (frame stereo beside the
+        buildings: the points of a roof carried onto the street do not set the cell,
+        and a cell of one roof and one street point is not put halfway between). A
+        tuple grids the points once per entry.
     origin : (row, col)
         As in :func:`grid_points`.
 
@@ -243,8 +245,8 @@ def grid_stereo(
 
 def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, reducers: tuple[str, ...]):
     """(cells, (len(reducers), cells) heights): for each reducer, each source's point
-    per cell it picks, then the median over the sources (of an even count, for
-    ``"max"`` and ``"second"``, the higher middle value: a height a pair saw)."""
+    per cell it picks, then the median over the sources (of an even count, but for
+    ``"median"``, the higher middle value: a height a pair saw)."""
     if not len(z):
         return cell, np.empty((len(reducers), 0))
     order = np.lexsort((z, src, cell))  # by cell, then source, then height
@@ -258,12 +260,12 @@ def _median_over_sources(cell: np.ndarray, src: np.ndarray, z: np.ndarray, reduc
     for k, reducer in enumerate(reducers):
         if reducer == "max":
             zs = z[first + n - 1]
-        elif reducer == "second":
-            zs = z[first + n - 1 - (n >= 3)]
         elif reducer == "median":
             zs = 0.5 * (z[first + (n - 1) // 2] + z[first + n // 2])
+        elif reducer == "upper_median":
+            zs = z[first + n // 2]
         else:
-            raise ValueError(f"per_source {reducer!r}: expected 'max', 'second' or 'median'")
+            raise ValueError(f"per_source {reducer!r}: expected 'max', 'median' or 'upper_median'")
         zs = zs[np.lexsort((zs, cell))]  # the sources of a cell by height; cells stay in order
         if reducer == "median":
             heights[k] = 0.5 * (zs[start + (count - 1) // 2] + zs[start + count // 2])
