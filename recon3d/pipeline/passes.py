@@ -127,9 +127,9 @@ def _highest(spec: Spec, cloud: PointCloud, grid: Raster, per_source: str | tupl
 
 def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tuple[int, int]) -> dict:
     """The tile's cells of the DSM before hole filling (frame stereo: also from the upper
-    median of each pair's points), its point counts and the lowest points of the ground filter's
-    minimum surface (on its own grid: ``zmin`` over the window ``zmin_origin`` of it that
-    the core covers, to be merged by minimum)."""
+    median of each pair's points), its point counts and the lowest points of the ground
+    filter's minimum surface (on its own grid: ``zmin`` over the window ``zmin_origin`` of
+    it that the core covers, to be merged by minimum)."""
     pts = spec.core(tile)
     cloud, a = pts.cloud, pts.cloud.attributes
     grid = spec.grid(tile)
@@ -137,7 +137,7 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     keep = dsm_stage.surface_points(cloud)
     xyz = cloud.xyz[keep]
     out: dict[str, Any] = {}
-    if spec.stereo == "frame" and "observed" in a:  # the median for the cells beside buildings, see make_dsm
+    if spec.stereo == "frame" and "observed" in a:  # the upper median for the cells beside buildings, see run._median_beside_buildings
         out["dsm"], out["dsm_beside"] = _highest(spec, cloud, grid, ("max", "upper_median"))
     else:
         out["dsm"] = _highest(spec, cloud, grid)
