@@ -137,7 +137,8 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     keep = dsm_stage.surface_points(cloud)
     xyz = cloud.xyz[keep]
     out: dict[str, Any] = {}
-    if spec.stereo == "frame" and "observed" in a:  # the upper median for the cells beside buildings, see run._median_beside_buildings
+    # frame stereo: the upper median for the cells beside buildings (run._median_beside_buildings)
+    if spec.stereo == "frame" and "observed" in a:
         out["dsm"], out["dsm_beside"] = _highest(spec, cloud, grid, ("max", "upper_median"))
     else:
         out["dsm"] = _highest(spec, cloud, grid)
