@@ -137,9 +137,9 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     keep = dsm_stage.surface_points(cloud)
     xyz = cloud.xyz[keep]
     out: dict[str, Any] = {}
-    # frame stereo: the upper median for the cells beside buildings (run._median_beside_buildings)
+    # frame stereo: the upper median for the cells outside the buildings (run._median_outside_buildings)
     if spec.stereo == "frame" and "observed" in a:
-        out["dsm"], out["dsm_beside"] = _highest(spec, cloud, grid, ("max", "upper_median"))
+        out["dsm"], out["dsm_upper_median"] = _highest(spec, cloud, grid, ("max", "upper_median"))
     else:
         out["dsm"] = _highest(spec, cloud, grid)
     if spec.stereo and "observed" in a:

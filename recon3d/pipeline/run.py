@@ -151,7 +151,7 @@ class Surface:
     first_returns: int = 0
     surface_bounds: tuple[np.ndarray, np.ndarray] | None = None  # first returns, not noise
     ground_surface: tuple | None = None  # lowest trusted point per cell of the ground filter's grid, its transform
-    beside: np.ndarray | None = None  # frame stereo: the cells from the upper median of each pair's points, until used
+    upper_median: np.ndarray | None = None  # frame stereo: the cells from the upper median of each pair's points, until used
 
     @property
     def matched(self) -> np.ndarray:
@@ -677,9 +677,9 @@ def make_dsm(r: Run) -> None:
         filled &= common
         if unobserved is not None:
             unobserved &= common
-    beside = g.place(paths, "dsm_beside") if stereo == "frame" and observed is not None else None
+    upper_median = g.place(paths, "dsm_upper_median") if stereo == "frame" and observed is not None else None
     r.surface = Surface(dsm, filled, unobserved, consistent_cells, common, g.place(paths, "points", fill=0.0), first,
-                        (lo, hi), (zmin, gtransform), beside)
+                        (lo, hi), (zmin, gtransform), upper_median)
     if stereo == "frame":
         _check_common_area(r)
 
@@ -935,8 +935,8 @@ def find_buildings(r: Run) -> None:
         if r.stereo == "frame" and cfg.image_outlines and polygons:
             polygons = _outlines_from_images(r, polygons, attrs)
     labels = detect.label_footprints(polygons, sf.dsm)
-    if sf.beside is not None:
-        _median_beside_buildings(r, labels)
+    if sf.upper_median is not None:
+        _median_outside_buildings(r, labels)
     heights = measure_heights(
         polygons, labels, sf.dsm, t.dtm, percentile=cfg.roof_percentile, min_height=u.height(cfg.min_height)
     )
@@ -957,53 +957,36 @@ def find_buildings(r: Run) -> None:
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
 
 
-#: Metres around the footprints in which a matched cell takes the median of each pair's
-#: points (:func:`_median_beside_buildings`). Everywhere outside the footprints, the
-#: median also took the upward bias of a pair's highest point off open ground, and the
-#: demo's DSM stood 0.076 m low on average against its truth (0.049 before, the demo's
-#: limit is 0.1; 0.056 within 2 m). Rings of 2, 3 and 4 m gave heading_180 the same
-#: tolerant RMS.
-BESIDE_RING = 2.0
-
-
-def _median_beside_buildings(r: Run, labels: np.ndarray) -> None:
-    """Frame stereo: matched DSM cells outside the buildings but within :data:`BESIDE_RING`
-    of them, and outside the crowns, take the median of each pair's points there (of an
-    even count the higher middle point, a height the pair saw) instead of its highest
-    (see :func:`recon3d.terrain.dsm.grid_stereo`, ``"upper_median"``).
+def _median_outside_buildings(r: Run, labels: np.ndarray) -> None:
+    """Frame stereo, once the footprints are known: matched DSM cells outside them and
+    outside the crowns take the median of each pair's points (of an even count the
+    higher middle point, a height the pair saw) instead of its highest (see
+    :func:`recon3d.terrain.dsm.grid_stereo`, ``"upper_median"``).
 
     A census window straddling a wall carries a point or two of a roof onto the street,
     and a pair's highest point keeps them; so does, along a wall, a pixel at the roof's
-    edge, triangulated at its centre up to half a pixel beyond the wall. Inside the
-    footprints the highest stays: there it keeps the roof's edge on the roof. In the
-    crowns (cells whose upper points are mostly vegetation) it stays too: a crown's few
-    matched points are its top, and the matcher already misses much of it. A cell the
-    wall crosses may take any height between the street and the roof (the truth holds
-    both), so the median costs nothing there; a street cell with a point or two of the
-    roof among its own points loses them, where the second highest (used before) kept
-    the roof whenever a pair had two points of it in the cell. The plain median put a
-    roof cell the detected footprint had missed, with as many street points as roof
-    points, halfway down (a roof check point of portrait_wide 8 m low). The README gives
-    the figures on the rendered surveys."""
-    from scipy import ndimage
-
+    edge, triangulated at its centre up to half a pixel beyond the wall. On open ground
+    the median also drops the upward bias of the highest of a pair's noisy points.
+    Inside the footprints the highest stays: there it keeps the roof's edge on the
+    roof. In the crowns (cells whose upper points are mostly vegetation) it stays too:
+    a crown's few matched points are its top, and the matcher already misses much of
+    it. A cell the wall crosses may take any height between the street and the roof
+    (the truth holds both), so the median costs nothing there. The plain median (not
+    the upper) put a roof cell the detected footprint had missed, with as many street
+    points as roof points, halfway down (a roof check point of portrait_wide 8 m low).
+    The README gives the figures on the rendered surveys."""
     sf, t = r.surface, r.terrain
-    beside, data = sf.beside, sf.dsm.data
-    outside = labels == 0
-    if outside.all():  # no building: the transform would measure from the array's corner
-        near = np.zeros_like(outside)
-    else:
-        near = ndimage.distance_transform_edt(outside) * sf.dsm.resolution <= r.units.length(BESIDE_RING)
-    lower = outside & near & ~r.evidence.vegetated & sf.matched & (beside < data)  # NaN compares False
-    data[lower] = np.fmax(beside[lower], t.dtm.data[lower])
+    data, median = sf.dsm.data, sf.upper_median
+    lower = (labels == 0) & ~r.evidence.vegetated & sf.matched & (median < data)  # NaN compares False
+    data[lower] = np.fmax(median[lower], t.dtm.data[lower])
     t.ndsm = dtm_stage.make_ndsm(sf.dsm, t.dtm)
-    sf.beside = None
-    r.auto["dsm.median_beside_buildings"] = {
+    sf.upper_median = None
+    r.auto["dsm.median_outside_buildings"] = {
         "value": int(lower.sum()),
-        "reason": f"matched cells outside the building footprints but within {BESIDE_RING:g} m of them, and outside "
-                  "the crowns: the median of each pair's points per cell, not its highest, so that the points of a "
-                  "roof carried onto the street by the matcher or triangulated beyond its wall do not set the cell "
-                  "(inside the footprints the highest keeps the roof's edge, in the crowns their top)",
+        "reason": "matched cells outside the building footprints and the crowns: the median of each pair's points "
+                  "per cell, not its highest, so that the points of a roof carried onto the street by the matcher "
+                  "or triangulated beyond its wall do not set the cell, nor the highest of a pair's noisy points on "
+                  "open ground (inside the footprints the highest keeps the roof's edge, in the crowns their top)",
     }
 
 
