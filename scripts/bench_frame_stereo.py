@@ -27,6 +27,8 @@ adding seeds to the held-out set, never move one the other way.
 ``--vectors`` also runs recon3d with the truth footprints (eave and ridge heights), the
 spot heights and the coarse DEM of ``truth/`` as matching constraints (vector-constrained
 matching), to measure their gain; the footprints then also give the building outlines.
+``--scenes DIR`` keeps the rendered scenes (about half of a run's time with 3 x 3 rays)
+for the next run, until the code that renders them changes.
 ``--quick``: ``nadir_pair`` alone at 320 px wide. ``--pixel-samples 3`` renders each pixel
 from 3 x 3 rays over its area (see :class:`recon3d.synthetic.render.Lighting`): one ray
 per pixel, the default, aliases the scene's finest texture on surfaces one view
@@ -40,8 +42,10 @@ ground check points are printed beside recon3d's DTM (column ``gndDTM``).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import resource
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -131,15 +135,52 @@ def _turned(cam, rot):
                   cam.height, cam.width, cam.image_path)
 
 
-def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = None, pixel_samples: int = 1) -> dict:
-    folder = tmp / spec.name
+def render(spec, pixel_samples: int, tmp: Path, scenes: Path | None = None) -> tuple[Path, float]:
+    """The scene folder of ``spec`` and the seconds its rendering took. Rendered into
+    ``tmp``; with ``scenes``, kept there under a key of the spec, the rays per pixel and
+    the source of the code that renders it, and found there again (0 s) by the next run
+    while that code is unchanged."""
+    lighting = Lighting(pixel_samples=pixel_samples)
+    if scenes is None:
+        t = time.perf_counter()
+        write_block_scene(tmp / spec.name, spec, lighting=lighting)
+        return tmp / spec.name, time.perf_counter() - t
+    folder = scenes / f"{spec.name}-{scene_key(spec, pixel_samples)}"
+    if (folder / "truth" / "scene.json").exists():
+        return folder, 0.0
+    scenes.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{folder.name}-", dir=scenes))
     t = time.perf_counter()
-    write_block_scene(folder, spec, lighting=Lighting(pixel_samples=pixel_samples))
-    render = time.perf_counter() - t
+    write_block_scene(scratch, spec, lighting=lighting)
+    seconds = time.perf_counter() - t
+    try:
+        scratch.rename(folder)  # whole or not at all: a run killed while rendering leaves only the scratch
+    except OSError:  # another run kept the same scene meanwhile
+        shutil.rmtree(scratch)
+    return folder, seconds
+
+
+def scene_key(spec, pixel_samples: int) -> str:
+    """16 hex digits of the SHA-256 of the spec, the rays per pixel and the source of
+    the packages the rendered scene depends on (the synthetic city and renderer, the
+    cameras, the writers)."""
+    import recon3d
+
+    digest = hashlib.sha256(json.dumps([spec.to_dict(), pixel_samples], sort_keys=True).encode())
+    package = Path(recon3d.__file__).parent
+    for sub in ("synthetic", "core", "io"):
+        for path in sorted((package / sub).glob("*.py")):
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = None, pixel_samples: int = 1,
+              scenes: Path | None = None) -> dict:
+    folder, render_s = render(spec, pixel_samples, tmp, scenes)
     city = scene_city(folder)
     truth = folder / "truth"
     row = {"scene": spec.name, "images": spec.strips * spec.images_per_strip, "size": f"{spec.width}x{spec.height}",
-           "render_s": round(render, 1), "spec": spec.to_dict(), "pixel_samples": pixel_samples}
+           "render_s": round(render_s, 1), "spec": spec.to_dict(), "pixel_samples": pixel_samples}
     runs = {"recon3d": {}}
     if vectors:
         runs["recon3d+vectors"] = {"footprints": truth / "footprints.geojson", "altimetry": truth / "spot_heights.csv",
@@ -310,6 +351,9 @@ def main() -> None:
                         help="render each pixel from K x K rays over its area, as a sensor integrates the light "
                              "(default 1: one ray per pixel centre, whose fine texture aliases on foreshortened "
                              "surfaces); 3 is close to a real camera")
+    parser.add_argument("--scenes", type=Path, metavar="DIR",
+                        help="keep the rendered scenes in DIR and reuse them on the next run (each under a key of "
+                             "its spec, its rays per pixel and the rendering code's source)")
     _bench.add_quick(parser)
     args = parser.parse_args()
     if args.quick:
@@ -334,7 +378,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for spec in specs:
             rows.append(bench_one(spec, Path(tmp), vectors=args.vectors, overrides=args.overrides,
-                                  pixel_samples=args.pixel_samples))
+                                  pixel_samples=args.pixel_samples, scenes=args.scenes))
             print_table(rows[-1:])
     print()
     print_table(rows)

@@ -94,9 +94,7 @@ def test_profile_run_prints_the_top_functions_of_each_terrain_stage(tmp_path):
         assert "tottime" in block and len(block.strip().splitlines()) >= 3, block
 
 
-def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
-    """``--only random_N`` runs the family's random survey of seed N, as the closing
-    notes name them; a name that is neither refuses in one line."""
+def _frame_stereo_bench():
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
         spec = importlib.util.spec_from_file_location("bench_frame_stereo", ROOT / "scripts" / "bench_frame_stereo.py")
@@ -104,6 +102,13 @@ def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
         spec.loader.exec_module(bench)
     finally:
         sys.path.remove(str(ROOT / "scripts"))
+    return bench
+
+
+def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
+    """``--only random_N`` runs the family's random survey of seed N, as the closing
+    notes name them; a name that is neither refuses in one line."""
+    bench = _frame_stereo_bench()
     from recon3d.synthetic.family import CONFIGURATIONS, random_spec
 
     assert bench.survey("random_52") == random_spec(52)
@@ -111,3 +116,25 @@ def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
     assert bench.survey("random_") is None and bench.survey("random_x") is None and bench.survey("nadir") is None
     done = _bench("bench_frame_stereo.py", "--only", "random_x", cwd=tmp_path)
     assert done.returncode == 1 and "random_N" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_frame_stereo_bench_keeps_rendered_scenes(tmp_path):
+    """``--scenes DIR``: a scene is rendered once and found again, byte for byte; another
+    spec or another number of rays per pixel is another scene, and a scene rendered
+    without the folder goes to the run's own temporary folder."""
+    from recon3d.synthetic.family import CONFIGURATIONS
+
+    bench = _frame_stereo_bench()
+    spec = CONFIGURATIONS["nadir_pair"].with_width(160)
+    scenes = tmp_path / "scenes"
+    first, seconds = bench.render(spec, 1, tmp_path / "run1", scenes)
+    assert seconds > 0 and first.parent == scenes and (first / "truth" / "scene.json").exists()
+    files = {p.relative_to(first): p.read_bytes() for p in sorted(first.rglob("*")) if p.is_file()}
+    again, seconds = bench.render(spec, 1, tmp_path / "run2", scenes)
+    assert again == first and seconds == 0.0
+    assert files == {p.relative_to(first): p.read_bytes() for p in sorted(first.rglob("*")) if p.is_file()}
+    assert bench.scene_key(spec, 3) != bench.scene_key(spec, 1)
+    assert bench.scene_key(spec.with_width(200), 1) != bench.scene_key(spec, 1)
+    assert [p.name for p in scenes.iterdir()] == [first.name]  # no scratch left behind
+    alone, _ = bench.render(spec, 1, tmp_path / "run3")
+    assert alone == tmp_path / "run3" / spec.name and (alone / "truth" / "scene.json").exists()
