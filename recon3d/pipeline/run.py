@@ -151,7 +151,7 @@ class Surface:
     first_returns: int = 0
     surface_bounds: tuple[np.ndarray, np.ndarray] | None = None  # first returns, not noise
     ground_surface: tuple | None = None  # lowest trusted point per cell of the ground filter's grid, its transform
-    upper_median: np.ndarray | None = None  # frame stereo: the cells from the upper median of each pair's points, until used
+    upper_median: np.ndarray | None = None  # frame stereo: the upper median of each pair's points per cell, until used
 
     @property
     def matched(self) -> np.ndarray:
