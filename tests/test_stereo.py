@@ -349,6 +349,35 @@ def test_a_notch_in_a_matched_roof_keeps_its_height():
     assert not holes[wide][:, -1].any()
 
 
+def test_a_guess_above_everything_matched_around_it_is_lowered():
+    """A 15 m roof (0.5 m cells) on matched ground. Beside its east wall, a guessed cell
+    at 35 m (a filled-in disparity beyond the occlusion) stands 20 m above every matched
+    cell within 1 m: it takes the roof's 15 m. A guess 0.5 m above the roof, one within
+    1 m of the ground alone at ground height, a guessed cell 3 m inside a roof face no
+    pixel matched, and every matched cell keep their heights."""
+    from affine import Affine
+
+    from recon3d.core.raster import Raster
+    from recon3d.stereo.coverage import unsupported_guesses
+
+    z = np.zeros((60, 60))
+    z[20:40, 20:40] = 15.0
+    matched = np.ones(z.shape, bool)
+    spike, near_roof, street, inside = (30, 40), (25, 40), (5, 5), (30, 30)
+    z[spike], z[near_roof], z[street] = 35.0, 15.5, 0.8
+    z[24:37, 24:37] = 15.0  # a roof face no pixel matched: its middle is 3 m from any match
+    matched[24:37, 24:37] = False
+    for cell in (spike, near_roof, street):
+        matched[cell] = False
+    dsm = Raster(z, Affine(0.5, 0, 0.0, 0, -0.5, 30.0))
+    lower, highest = unsupported_guesses(dsm, matched, ~matched, reach=1.0, height=1.0)
+    assert lower[spike] and highest[spike] == 15.0
+    assert np.argwhere(lower).tolist() == [list(spike)]
+    assert highest[inside] == -np.inf  # no match within reach: not judged
+    z[inside] = 40.0
+    assert not unsupported_guesses(Raster(z, dsm.transform), matched, ~matched, reach=1.0, height=1.0)[0][inside]
+
+
 def test_matcher_against_the_exact_disparity(scene):
     """The ray-cast disparity of the rendered pair is exact, and the matcher agrees with it.
 

@@ -937,6 +937,8 @@ def find_buildings(r: Run) -> None:
     labels = detect.label_footprints(polygons, sf.dsm)
     if sf.upper_median is not None:
         _median_outside_buildings(r, labels)
+        _lower_unsupported_guesses(r)
+        t.ndsm = dtm_stage.make_ndsm(sf.dsm, t.dtm)
     heights = measure_heights(
         polygons, labels, sf.dsm, t.dtm, percentile=cfg.roof_percentile, min_height=u.height(cfg.min_height)
     )
@@ -979,7 +981,6 @@ def _median_outside_buildings(r: Run, labels: np.ndarray) -> None:
     data, median = sf.dsm.data, sf.upper_median
     lower = (labels == 0) & ~r.evidence.vegetated & sf.matched & (median < data)  # NaN compares False
     data[lower] = np.fmax(median[lower], t.dtm.data[lower])
-    t.ndsm = dtm_stage.make_ndsm(sf.dsm, t.dtm)
     sf.upper_median = None
     r.auto["dsm.median_outside_buildings"] = {
         "value": int(lower.sum()),
@@ -987,6 +988,30 @@ def _median_outside_buildings(r: Run, labels: np.ndarray) -> None:
                   "per cell, not its highest, so that the points of a roof carried onto the street by the matcher "
                   "or triangulated beyond its wall do not set the cell, nor the highest of a pair's noisy points on "
                   "open ground (inside the footprints the highest keeps the roof's edge, in the crowns their top)",
+    }
+
+
+#: Metres around a guessed DSM cell searched for matched cells, and metres above the
+#: highest of them at which the guess is lowered to it (:func:`_lower_unsupported_guesses`).
+SUPPORT_REACH = 1.0
+SUPPORT_HEIGHT = 1.0
+
+
+def _lower_unsupported_guesses(r: Run) -> None:
+    """Frame stereo: a cell no pixel matched that stands more than :data:`SUPPORT_HEIGHT`
+    above every matched cell within :data:`SUPPORT_REACH` takes the highest of them (see
+    :func:`recon3d.stereo.coverage.unsupported_guesses`)."""
+    from recon3d.stereo import coverage
+
+    sf, t, u = r.surface, r.terrain, r.units
+    guessed = sf.filled if sf.unobserved is None else sf.unobserved
+    lower, highest = coverage.unsupported_guesses(sf.dsm, sf.matched, guessed, reach=u.length(SUPPORT_REACH),
+                                                  height=u.height(SUPPORT_HEIGHT))
+    sf.dsm.data[lower] = np.fmax(highest[lower], t.dtm.data[lower])
+    r.auto["dsm.unsupported_guesses"] = {
+        "value": int(lower.sum()),
+        "reason": f"cells no pixel matched standing more than {SUPPORT_HEIGHT:g} m above every matched cell within "
+                  f"{SUPPORT_REACH:g} m: lowered to the highest of them (a guess the images give nothing to hold up)",
     }
 
 

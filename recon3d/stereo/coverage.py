@@ -263,6 +263,40 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     return seen | _hidden_at_ground(scene, pairs, dsm, dtm, judged & ~seen, matched, ~enclosed, tolerance=tolerance)
 
 
+def unsupported_guesses(dsm: Raster, matched: np.ndarray, guessed: np.ndarray, *, reach: float,
+                        height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ``guessed`` cells standing more than ``height`` above every ``matched`` cell
+    within ``reach`` (a square of that half-width), and the highest of those.
+
+    A hole filled from its rim never stands above the rim, but the matcher's guesses (a
+    disparity filled in beside an occlusion) can: beside a building they put single
+    cells metres above the roof next to them. A guess higher than everything the images
+    matched around it has nothing to hold it up. Cells farther than ``reach`` from any
+    match (the inside of a roof face no pixel matched) are not judged.
+
+    Parameters
+    ----------
+    dsm : Raster
+    matched, guessed : (rows, cols) bool
+    reach, height : float
+        CRS units.
+
+    Returns
+    -------
+    lower : (rows, cols) bool
+    highest : (rows, cols) float
+        The highest matched cell within ``reach``; -inf where there is none.
+    """
+    import cv2
+
+    k = max(1, int(round(reach / dsm.resolution)))
+    heights = np.where(matched & np.isfinite(dsm.data), dsm.data, -np.inf)
+    highest = cv2.dilate(heights, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * k + 1, 2 * k + 1)),
+                         borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    lower = guessed & ~matched & np.isfinite(highest) & (dsm.data > highest + height)  # NaN compares False
+    return lower, highest
+
+
 def roof_holes(dsm: Raster, dtm: Raster, matched: np.ndarray, units: Units) -> np.ndarray:
     """(rows, cols) bool: cells inside the morphological closing, by a disc of radius
     :data:`ROOF_HOLE_RADIUS` or by a horizontal or vertical line reaching
