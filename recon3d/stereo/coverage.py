@@ -287,12 +287,9 @@ def unsupported_guesses(dsm: Raster, matched: np.ndarray, guessed: np.ndarray, *
     highest : (rows, cols) float
         The highest matched cell within ``reach``; -inf where there is none.
     """
-    import cv2
-
-    k = max(1, int(round(reach / dsm.resolution)))
+    size = 2 * max(1, int(round(reach / dsm.resolution))) + 1
     heights = np.where(matched & np.isfinite(dsm.data), dsm.data, -np.inf)
-    highest = cv2.dilate(heights, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * k + 1, 2 * k + 1)),
-                         borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
+    highest = ndimage.maximum_filter(heights, size=size, mode="constant", cval=-np.inf)
     lower = guessed & ~matched & np.isfinite(highest) & (dsm.data > highest + height)  # NaN compares False
     return lower, highest
 

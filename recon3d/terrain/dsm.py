@@ -212,7 +212,7 @@ def grid_stereo(
         building's edge stays on the roof); the median of them (several points of one
         pair per cell, as satellite GSD against the cell size gives: the highest of
         noisy heights would stand a noise sigma too high); or the higher of the two
-        middle points of an even count, a height the pair saw (frame stereo beside the
+        middle points of an even count, a height the pair saw (frame stereo outside the
         buildings: the points of a roof carried onto the street do not set the cell,
         and a cell of one roof and one street point is not put halfway between). A
         tuple grids the points once per entry.
