@@ -547,8 +547,13 @@ TILE_MEMORY_SHARE = 0.5
 
 #: Most points a work tile holds, buffer included, however much memory there is: a
 #: tile's work gains nothing from being larger, and smaller tiles keep every worker
-#: busy and the memory of a run the same whatever its area.
-TILE_POINTS = 1_500_000
+#: busy and the memory of a run the same whatever its area. A worker's imports take
+#: about 250 MB; a tile of this many points adds about 200 MB to it at its heaviest
+#: pass, so the run's peak hardly depends on how full its tiles are. On the Delft
+#: strip copied 2 x 2, 4 x 4 and 10 x 10 (``scripts/bench_scale.py``) this budget's
+#: 128 m tiles against 1.5 M points' 256 m ones: peak 0.85 -> 0.74, 1.09 -> 0.85 and
+#: 1.48 -> 1.39 GB, wall time 2 to 6 % longer (the buffers' share of the points).
+TILE_POINTS = 800_000
 
 
 def plan(r: Run) -> None:

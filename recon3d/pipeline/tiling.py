@@ -131,5 +131,6 @@ def plan_tiles(
         return TileGrid(shape, side, buffer), f"one tile: the whole area holds fewer than {budget:,.0f} points"
     return TileGrid(shape, side, buffer), (
         f"largest tile whose {(side + 2 * buffer) ** 2 * points_per_cell:,.0f} points (with the buffer) "
-        f"fit a tile's budget of {budget:,.0f} (the memory of one worker, at most 1.5 M)"
+        f"fit a tile's budget of {budget:,.0f} (the lesser of one worker's share of the memory "
+        "and the cap on a tile's points)"
     )
