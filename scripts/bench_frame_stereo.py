@@ -42,6 +42,7 @@ ground check points are printed beside recon3d's DTM (column ``gndDTM``).
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import resource
@@ -162,16 +163,24 @@ def render(spec, pixel_samples: int, tmp: Path, scenes: Path | None = None) -> t
 
 def scene_key(spec, pixel_samples: int) -> str:
     """16 hex digits of the SHA-256 of the spec, the rays per pixel and the source of
-    the packages the rendered scene depends on (the synthetic city and renderer, the
-    cameras, the writers)."""
+    the packages the rendered scene depends on (:func:`_rendering_source`)."""
+    digest = hashlib.sha256(json.dumps([spec.to_dict(), pixel_samples], sort_keys=True).encode())
+    digest.update(_rendering_source())
+    return digest.hexdigest()[:16]
+
+
+@functools.cache
+def _rendering_source() -> bytes:
+    """SHA-256 of the source of the synthetic city and renderer, the cameras and the
+    writers: read once per run, not once per scene."""
     import recon3d
 
-    digest = hashlib.sha256(json.dumps([spec.to_dict(), pixel_samples], sort_keys=True).encode())
+    digest = hashlib.sha256()
     package = Path(recon3d.__file__).parent
     for sub in ("synthetic", "core", "io"):
         for path in sorted((package / sub).glob("*.py")):
             digest.update(path.read_bytes())
-    return digest.hexdigest()[:16]
+    return digest.digest()
 
 
 def bench_one(spec, tmp: Path, *, vectors: bool, overrides: list[str] | None = None, pixel_samples: int = 1,

@@ -982,18 +982,23 @@ def _median_outside_buildings(r: Run, labels: np.ndarray) -> None:
     the upper) put a roof cell the detected footprint had missed, with as many street
     points as roof points, halfway down (a roof check point of portrait_wide 8 m low).
     The README gives the figures on the rendered surveys."""
-    sf, t = r.surface, r.terrain
-    data, median = sf.dsm.data, sf.upper_median
-    lower = (labels == 0) & ~r.evidence.vegetated & sf.matched & (median < data)  # NaN compares False
-    data[lower] = np.fmax(median[lower], t.dtm.data[lower])
+    sf = r.surface
+    median = sf.upper_median
+    lower = (labels == 0) & ~r.evidence.vegetated & sf.matched & (median < sf.dsm.data)  # NaN compares False
     sf.upper_median = None
-    r.auto["dsm.median_outside_buildings"] = {
-        "value": int(lower.sum()),
-        "reason": "matched cells outside the building footprints and the crowns: the median of each pair's points "
-                  "per cell, not its highest, so that the points of a roof carried onto the street by the matcher "
-                  "or triangulated beyond its wall do not set the cell, nor the highest of a pair's noisy points on "
-                  "open ground (inside the footprints the highest keeps the roof's edge, in the crowns their top)",
-    }
+    _lower_dsm(r, "dsm.median_outside_buildings", lower, median,
+               "matched cells outside the building footprints and the crowns: the median of each pair's points per "
+               "cell, not its highest, so that the points of a roof carried onto the street by the matcher or "
+               "triangulated beyond its wall do not set the cell, nor the highest of a pair's noisy points on open "
+               "ground (inside the footprints the highest keeps the roof's edge, in the crowns their top)")
+
+
+def _lower_dsm(r: Run, key: str, cells: np.ndarray, heights: np.ndarray, reason: str) -> None:
+    """Set the DSM's ``cells`` to ``heights``, never below the DTM, and record how many in
+    run.json under ``key`` with ``reason``."""
+    dsm, dtm = r.surface.dsm.data, r.terrain.dtm.data
+    dsm[cells] = np.fmax(heights[cells], dtm[cells])
+    r.auto[key] = {"value": int(cells.sum()), "reason": reason}
 
 
 #: Metres around a guessed DSM cell searched for matched cells, and metres above the
@@ -1008,16 +1013,13 @@ def _lower_unsupported_guesses(r: Run) -> None:
     :func:`recon3d.stereo.coverage.unsupported_guesses`)."""
     from recon3d.stereo import coverage
 
-    sf, t, u = r.surface, r.terrain, r.units
+    sf, u = r.surface, r.units
     guessed = sf.filled if sf.unobserved is None else sf.unobserved
     lower, highest = coverage.unsupported_guesses(sf.dsm, sf.matched, guessed, reach=u.length(SUPPORT_REACH),
                                                   height=u.height(SUPPORT_HEIGHT))
-    sf.dsm.data[lower] = np.fmax(highest[lower], t.dtm.data[lower])
-    r.auto["dsm.unsupported_guesses"] = {
-        "value": int(lower.sum()),
-        "reason": f"cells no pixel matched standing more than {SUPPORT_HEIGHT:g} m above every matched cell within "
-                  f"{SUPPORT_REACH:g} m: lowered to the highest of them (a guess the images give nothing to hold up)",
-    }
+    _lower_dsm(r, "dsm.unsupported_guesses", lower, highest,
+               f"cells no pixel matched standing more than {SUPPORT_HEIGHT:g} m above every matched cell within "
+               f"{SUPPORT_REACH:g} m: lowered to the highest of them (a guess the images give nothing to hold up)")
 
 
 def _mapper(r: Run):
