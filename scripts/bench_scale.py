@@ -12,6 +12,10 @@ memory within 1.25 x of the 4 x survey's whatever the area, 2 workers at least 1
 faster than 1 on the 16 x survey, and a 20 M-point survey through the whole pipeline
 on 2 cores in 20 minutes with at most 4 GB.
 
+With ``--compare-workers`` a second table splits the speed-up by stage: each stage's
+seconds with 1 worker and with ``--workers``, and its idle seconds (the time it takes
+beyond a perfect speed-up), so the stages that hold the other cores idle stand out.
+
 No peer runs beside it: pdal-parallelizer needs PDAL's Python binding, which no
 registry here offers (bench_terrain.py times PDAL's own terrain pipeline), and no peer
 builds the whole product set (DSM, DTM, classes, LoD2.2 solids) to time against.
@@ -95,6 +99,21 @@ def run_once(paths: list[Path], out: Path, workers: int, extra: list[str]) -> di
             "timings": record["timings_s"], "buildings": json.loads((out / "report.json").read_text())["buildings"]["count"]}
 
 
+def speedup_table(single: dict[str, float], multi: dict[str, float], workers: int) -> str:
+    """Per stage: seconds with 1 worker and with ``workers``, the speed-up, and the
+    seconds the stage would save at a perfect speed-up (where the second core idles)."""
+    lines = [f"{'stage':<22}{'1 worker s':>11}{f'{workers} workers s':>13}{'speed-up':>10}{'idle s':>8}"]
+    for stage in sorted(multi, key=lambda s: -single.get(s, 0.0)):
+        one, many = single.get(stage, 0.0), multi[stage]
+        if max(one, many) < 0.5:
+            continue
+        lines.append(f"{stage:<22}{one:>11.1f}{many:>13.1f}{one / max(many, 1e-9):>10.2f}{many - one / workers:>8.1f}")
+    total_one, total_many = sum(single.values()), sum(multi.values())
+    lines.append(f"{'all stages':<22}{total_one:>11.1f}{total_many:>13.1f}{total_one / max(total_many, 1e-9):>10.2f}"
+                 f"{total_many - total_one / workers:>8.1f}")
+    return "\n".join(lines)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DATA, help="the tile copied (default: the Delft strip)")
@@ -145,6 +164,7 @@ def main() -> int:
         multi = next(rec for k, rec in rows if k == args.compare_workers)
         print(f"\n{args.compare_workers ** 2} x survey: 1 worker {single['wall']:.1f} s, {args.workers} workers "
               f"{multi['wall']:.1f} s: {single['wall'] / multi['wall']:.2f} x faster (target >= 1.7 with 2)")
+        print(speedup_table(single["timings"], multi["timings"], args.workers))
     print("peers: none run here (no peer builds the same products; PDAL's terrain part: bench_terrain.py)")
     return 0
 

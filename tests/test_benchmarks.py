@@ -138,3 +138,22 @@ def test_frame_stereo_bench_keeps_rendered_scenes(tmp_path):
     assert [p.name for p in scenes.iterdir()] == [first.name]  # no scratch left behind
     alone, _ = bench.render(spec, 1, tmp_path / "run3")
     assert alone == tmp_path / "run3" / spec.name and (alone / "truth" / "scene.json").exists()
+
+
+def test_scale_bench_splits_the_speed_up_by_stage():
+    """The per-stage table of ``bench_scale.py --compare-workers``: a stage halved by two
+    workers idles nothing, one not sped up idles half its single-worker time; stages
+    under 0.5 s are left out, the total keeps them."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_scale", ROOT / "scripts" / "bench_scale.py")
+        bench = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(bench)
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    lines = bench.speedup_table({"lod": 10.0, "dtm": 3.0, "read": 0.2}, {"lod": 5.0, "dtm": 3.0, "read": 0.2}, 2)
+    rows = {line.split()[0]: line.split()[1:] for line in lines.splitlines()[1:]}
+    assert rows["lod"] == ["10.0", "5.0", "2.00", "0.0"]
+    assert rows["dtm"] == ["3.0", "3.0", "1.00", "1.5"]
+    assert "read" not in rows
+    assert rows["all"] == ["stages", "13.2", "8.2", "1.61", "1.6"]
