@@ -311,6 +311,85 @@ def test_a_narrow_street_neither_image_sees_is_lowered():
     assert not lowered(closed=True).any()
 
 
+def test_open_to_ground_counts_each_rim_cell_once_per_region():
+    """Three 2 x 2 regions of agreed guesses (1 m cells) on a grid of matched cells. The
+    first has ground west, north and south of it (10 of its 12 rim cells): it opens
+    onto the ground. The second lies in a roof with ground on its west side only (3 of
+    its 11 rim cells: the third region's corner cell is no rim). The third touches the
+    first diagonally through one ground rim cell, which counts for both; with 2 ground
+    cells of 11 it stays closed. A rim half ground (6 of 12) opens."""
+    from recon3d.stereo.coverage import GROUND_RIM_SHARE, open_to_ground
+
+    cells = np.zeros((12, 12), bool)
+    street, roof, corner = (slice(2, 4), slice(2, 4)), (slice(7, 9), slice(7, 9)), (slice(5, 7), slice(5, 7))
+    for region in (street, roof, corner):
+        cells[region] = True
+    ground = np.zeros(cells.shape, bool)
+    ground[1:5, 1] = ground[1, 1:5] = ground[4, 1:5] = True  # west, north and south of the street region
+    ground[6:10, 6] = True  # the roof region's west side (also the corner region's rim)
+    rim = ~cells
+    opened = open_to_ground(cells, ground, rim)
+    assert opened[street].all()
+    assert not opened[roof].any() and not opened[corner].any()
+    assert opened.sum() == 4
+    half = np.zeros(cells.shape, bool)
+    half[1:5, 1] = True
+    half[1, 2:4] = True
+    assert np.count_nonzero(half & ~cells) / 12 >= GROUND_RIM_SHARE
+    assert open_to_ground(cells, half, rim)[street].all()
+    # a region without rim cells stays closed
+    assert not open_to_ground(cells, ground, np.zeros(cells.shape, bool)).any()
+
+
+def test_agreed_guesses_go_to_the_ground_only_behind_a_building_and_open_onto_the_ground():
+    """Guesses the images agree with (1 m cells, cameras 100 m up, 50 m either side of a
+    matched 15 m block), none judged by the first pass:
+
+    - the street west of the block, filled at 10 m: ground on three sides, and at the
+      DTM's height the block hides it from the east camera only: hidden ground;
+    - a crown the matcher missed, 8 m high, ringed by matched ground: it hides nothing
+      from one image only, so it keeps its height (the first test, both images seeing
+      it at 8 m, would have lowered it);
+    - a face at the block's east edge, filled at 14 m, the roof on three sides: at the
+      DTM's height the block hides it from the west camera just as it hides the street,
+      but it opens onto its roof, not onto the ground, and keeps its height (every
+      test would have lowered most of it);
+    - a guess beyond an occlusion's width (foreground), east of the block: never judged.
+    """
+    from types import SimpleNamespace
+
+    from affine import Affine
+
+    from recon3d.core.geo import Units
+    from recon3d.core.raster import Raster
+    from recon3d.pipeline.run import _lower_agreed_guesses
+    from recon3d.stereo.coverage import unseen_guesses
+
+    z = np.zeros((60, 60))
+    z[20:40, 20:40] = 15.0
+    street, crown, face, beyond = ((slice(28, 32), slice(16, 20)), (slice(5, 9), slice(5, 9)),
+                                   (slice(28, 32), slice(36, 40)), (slice(10, 14), slice(40, 44)))
+    guessed = np.zeros(z.shape, bool)
+    for region, height in ((street, 10.0), (crown, 8.0), (face, 14.0), (beyond, 10.0)):
+        z[region] = height
+        guessed[region] = True
+    foreground = np.zeros(z.shape, bool)
+    foreground[beyond] = True
+    transform = Affine(1.0, 0, 0.0, 0, -1.0, 60.0)
+    dsm, dtm = Raster(z.copy(), transform), Raster(np.zeros(z.shape), transform)
+    scene, pairs = _west_east_cameras(), [{"images": ["w", "e"]}]
+    surface = SimpleNamespace(dsm=dsm, unobserved=guessed, consistent=guessed, foreground=foreground,
+                              matched=~guessed)
+    r = SimpleNamespace(surface=surface, units=Units(), source=SimpleNamespace(scene=scene, stereo={"pairs": pairs}))
+    lower = _lower_agreed_guesses(r, dtm, np.zeros(z.shape, bool), tolerance=0.5)
+    assert lower[street].all() and (dsm.data[street] == 0.0).all()
+    assert not lower[crown].any() and not lower[face].any() and not lower[beyond].any()
+    assert lower.sum() == 16
+    every_test = unseen_guesses(scene, pairs, Raster(z, transform), dtm, guessed & ~foreground, ~guessed, Units(),
+                                tolerance=0.5, min_area=4.0)
+    assert every_test[crown].all() and every_test[face].mean() > 0.8  # its inner corners: a roof hole
+
+
 def test_a_notch_in_a_matched_roof_keeps_its_height():
     """A notch the matcher missed in the east edge of a matched 15 m roof (2 m wide,
     4 m deep, 0.5 m cells), filled in at 14 m: at the DTM's height the east camera sees

@@ -145,8 +145,9 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     if spec.stereo and "observed" in a:
         out["observed"] = dsm_stage.grid_points(cloud.xyz[a["observed"] > 0], T, shape, reducer="count", origin=origin)
         if "consistent" in a:
-            out["consistent"] = dsm_stage.grid_points(cloud.xyz[a["consistent"] > 0], T, shape, reducer="count",
-                                                      origin=origin)
+            # 1: the images agree with the guess; 2: filled beyond an occlusion's width
+            for key, held in (("consistent", a["consistent"] > 0), ("foreground", a["consistent"] == 2)):
+                out[key] = dsm_stage.grid_points(cloud.xyz[held], T, shape, reducer="count", origin=origin)
     out["count"] = dsm_stage.grid_points(xyz, T, shape, reducer="count", origin=origin)
     out["points"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin)
     first = np.asarray(a["return_number"]) <= 1 if "return_number" in a else np.ones(len(cloud), bool)

@@ -208,10 +208,11 @@ def _match_pair(scene, i, j, points, top, config, bounds, warn) -> tuple[PointCl
     # A filled-in disparity is a guess, even where the images agree with it: beside walls
     # such agreement is often chance, and carried the roof onto the street in 62 % of the
     # spilled cells of a rendered survey. Agreement still tells a steep or shadowed roof
-    # face the matcher missed from a courtyard it could not see (see make_dtm).
-    consistent = result.filled & (photo_consistency(left, right, result.disparity) >= 0.4)
-    if result.foreground is not None:  # beyond an occlusion's width: no hidden ground
-        consistent |= result.foreground
+    # face the matcher missed from a courtyard it could not see (see make_dtm). 1: the
+    # images agree with the guess; 2: it lies beyond an occlusion's width.
+    consistent = (result.filled & (photo_consistency(left, right, result.disparity) >= 0.4)).astype(np.uint8)
+    if result.foreground is not None:  # no hidden ground
+        consistent[result.foreground] = 2
     cloud = triangulate(
         pair, result.disparity, result.confidence, min_angle_deg=config.min_angle,
         guessed=result.filled, consistent=consistent,

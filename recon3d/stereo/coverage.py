@@ -26,6 +26,7 @@ __all__ = [
     "common_area",
     "common_area_fill",
     "holes_both_saw",
+    "open_to_ground",
     "roof_holes",
     "rpc_common_area",
     "seen_by_a_pair",
@@ -76,6 +77,11 @@ ROOF_HOLE_HEIGHT = 2.0
 #: 2.71 to 1.17 m; on the 4 held-out surveys the RMS fell on all four and random_63's
 #: roof check point RMS from 3.16 to 2.82 m.
 ROOF_STRIPE_REACH = 1.5
+
+#: Least share of the rim of a region of agreed guesses (the matched or lowered cells
+#: touching it) that must be ground for the region to be judged as hidden ground
+#: (:func:`open_to_ground`).
+GROUND_RIM_SHARE = 0.5
 
 
 def common_area(scene, pairs: list[dict], dsm: Raster, observed: np.ndarray, units: Units) -> np.ndarray:
@@ -220,7 +226,7 @@ def common_area_fill(common: np.ndarray, dsm: Raster, filled: np.ndarray, unobse
 
 
 def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged: np.ndarray, matched: np.ndarray,
-                   units: Units, *, tolerance: float, min_area: float) -> np.ndarray:
+                   units: Units, *, tolerance: float, min_area: float, behind_only: bool = False) -> np.ndarray:
     """(rows, cols) bool: stereo DSM cells filled in above the DTM that are hidden ground,
     to take the DTM.
 
@@ -252,6 +258,9 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     ----------
     matched : (rows, cols) bool
         Cells holding a matched point: the surface that hides the ground from one image.
+    behind_only : bool
+        Judge by the second test alone: for guesses the images agree with, whose
+        height the first test would only contradict by chance.
     """
     regions, n = ndimage.label(unjudged)
     area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * dsm.resolution**2
@@ -259,8 +268,40 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     judged &= ~roof_holes(dsm, dtm, matched, units)
     raised = _raised(dsm, dtm, matched, units)
     enclosed = ndimage.binary_fill_holes(raised) & ~raised
+    if behind_only:  # no cell is open to the third test
+        return _hidden_at_ground(scene, pairs, dsm, dtm, judged, matched, np.zeros_like(enclosed), tolerance=tolerance)
     seen = seen_by_a_pair(scene, pairs, dsm, judged, tolerance=tolerance)
     return seen | _hidden_at_ground(scene, pairs, dsm, dtm, judged & ~seen, matched, ~enclosed, tolerance=tolerance)
+
+
+def open_to_ground(cells: np.ndarray, ground: np.ndarray, rim: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: the 8-connected regions of ``cells`` at least
+    :data:`GROUND_RIM_SHARE` of whose rim is ``ground``.
+
+    The rim of a region is the ``rim`` cells outside it touching it (8 neighbours); a
+    cell touching two regions counts for both. Ground hidden from one image opens onto
+    the street beyond it; a roof face the matcher missed opens onto its roof.
+
+    Parameters
+    ----------
+    cells, ground, rim : (rows, cols) bool
+        ``ground`` is read on the rim only.
+    """
+    regions, n = ndimage.label(cells, structure=np.ones((3, 3)))
+    out = np.zeros(cells.shape, bool)
+    if n == 0:
+        return out
+    rows, cols = np.nonzero(rim & ~cells)
+    padded = np.pad(regions, 1)
+    around = np.sort(np.stack([padded[rows + 1 + dr, cols + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)],
+                              axis=1), axis=1)  # (k, 9): the labels touching each rim cell
+    first = np.concatenate([np.ones((len(rows), 1), bool), np.diff(around, axis=1) != 0], axis=1) & (around > 0)
+    label = around[first]
+    on_ground = np.broadcast_to(ground[rows, cols][:, None], around.shape)[first]
+    total = np.bincount(label, minlength=n + 1)
+    opened = (total > 0) & (np.bincount(label, weights=on_ground, minlength=n + 1) >= GROUND_RIM_SHARE * total)
+    opened[0] = False
+    return opened[regions]
 
 
 def unsupported_guesses(dsm: Raster, matched: np.ndarray, guessed: np.ndarray, *, reach: float,

@@ -28,10 +28,11 @@ def triangulate(
         Rays meeting at a smaller angle are dropped (depth too uncertain).
     guessed : (H, W) bool, optional
         Pixels whose disparity is a guess: filled in rather than matched.
-    consistent : (H, W) bool, optional
-        Guessed pixels with evidence for them: the images agree with the guess
-        (photo-consistent), or the pixel lies beyond an occlusion's width beside the
-        surface it was filled from (:func:`recon3d.stereo.match.foreground_beyond_occlusion`).
+    consistent : (H, W) uint8 or bool, optional
+        Guessed pixels with evidence for them: 1 (or True) where the images agree with
+        the guess (photo-consistent), 2 where the pixel lies beyond an occlusion's width
+        beside the surface it was filled from
+        (:func:`recon3d.stereo.match.foreground_beyond_occlusion`); 0 elsewhere.
 
     Returns
     -------
@@ -40,7 +41,7 @@ def triangulate(
         ``blue`` (uint16), ``quality`` (confidence scaled by the intersection angle's
         depth precision, in [0, 1]), ``intersection_angle`` (degrees), ``observed``
         (uint8, 0 for points of guessed pixels; all 1 without ``guessed``) and, with
-        ``consistent``, ``consistent`` (uint8, 1 for guesses with evidence for them).
+        ``consistent``, ``consistent`` (uint8, its value at the point's pixel).
     """
     valid = np.isfinite(disparity) & pair.valid_left
     rows, cols = np.nonzero(valid)
