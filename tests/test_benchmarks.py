@@ -94,15 +94,20 @@ def test_profile_run_prints_the_top_functions_of_each_terrain_stage(tmp_path):
         assert "tottime" in block and len(block.strip().splitlines()) >= 3, block
 
 
-def _frame_stereo_bench():
+def _load_bench(name: str):
+    """The module of ``scripts/<name>.py`` (which imports ``_bench`` beside it)."""
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
-        spec = importlib.util.spec_from_file_location("bench_frame_stereo", ROOT / "scripts" / "bench_frame_stereo.py")
+        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
         bench = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(bench)
     finally:
         sys.path.remove(str(ROOT / "scripts"))
     return bench
+
+
+def _frame_stereo_bench():
+    return _load_bench("bench_frame_stereo")
 
 
 def test_frame_stereo_bench_runs_random_surveys_by_name(tmp_path):
@@ -144,14 +149,7 @@ def test_scale_bench_splits_the_speed_up_by_stage():
     """The per-stage table of ``bench_scale.py --compare-workers``: a stage halved by two
     workers idles nothing, one not sped up idles half its single-worker time; stages
     under 0.5 s are left out, the total keeps them."""
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        spec = importlib.util.spec_from_file_location("bench_scale", ROOT / "scripts" / "bench_scale.py")
-        bench = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(bench)
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
-    lines = bench.speedup_table({"lod": 10.0, "dtm": 3.0, "read": 0.2}, {"lod": 5.0, "dtm": 3.0, "read": 0.2}, 2)
+    lines = _load_bench("bench_scale").speedup_table({"lod": 10.0, "dtm": 3.0, "read": 0.2}, {"lod": 5.0, "dtm": 3.0, "read": 0.2}, 2)
     rows = {line.split()[0]: line.split()[1:] for line in lines.splitlines()[1:]}
     assert rows["lod"] == ["10.0", "5.0", "2.00", "0.0"]
     assert rows["dtm"] == ["3.0", "3.0", "1.00", "1.5"]
