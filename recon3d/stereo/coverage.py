@@ -291,7 +291,7 @@ def open_to_ground(cells: np.ndarray, ground: np.ndarray, rim: np.ndarray) -> np
     out = np.zeros(cells.shape, bool)
     if n == 0:
         return out
-    rows, cols = np.nonzero(rim & ~cells)
+    rows, cols = np.nonzero(rim & ~cells & ndimage.binary_dilation(cells, np.ones((3, 3), bool)))
     padded = np.pad(regions, 1)
     around = np.sort(np.stack([padded[rows + 1 + dr, cols + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)],
                               axis=1), axis=1)  # (k, 9): the labels touching each rim cell
