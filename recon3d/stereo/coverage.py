@@ -266,10 +266,10 @@ def unseen_guesses(scene, pairs: list[dict], dsm: Raster, dtm: Raster, unjudged:
     area = ndimage.sum_labels(np.ones(regions.shape), regions, np.arange(1, n + 1)) * dsm.resolution**2
     judged = unjudged & (np.r_[0.0, area][regions] >= min_area) & (dsm.data > dtm.data + tolerance)
     judged &= ~roof_holes(dsm, dtm, matched, units)
+    if behind_only:
+        return _hidden_at_ground(scene, pairs, dsm, dtm, judged, matched, None, tolerance=tolerance)
     raised = _raised(dsm, dtm, matched, units)
     enclosed = ndimage.binary_fill_holes(raised) & ~raised
-    if behind_only:  # no cell is open to the third test
-        return _hidden_at_ground(scene, pairs, dsm, dtm, judged, matched, np.zeros_like(enclosed), tolerance=tolerance)
     seen = seen_by_a_pair(scene, pairs, dsm, judged, tolerance=tolerance)
     return seen | _hidden_at_ground(scene, pairs, dsm, dtm, judged & ~seen, matched, ~enclosed, tolerance=tolerance)
 
@@ -365,11 +365,11 @@ def _raised(dsm: Raster, dtm: Raster, matched: np.ndarray, units: Units) -> np.n
 
 
 def _hidden_at_ground(scene, pairs: list[dict], dsm: Raster, dtm: Raster, cells: np.ndarray, matched: np.ndarray,
-                      open_ground: np.ndarray, *, tolerance: float) -> np.ndarray:
+                      open_ground: np.ndarray | None, *, tolerance: float) -> np.ndarray:
     """(rows, cols) bool: the ``cells`` whose ground, at the DTM's height, the matched
     surface (the DTM elsewhere) hides from one image of some matched pair, or, where
-    ``open_ground`` (not enclosed by raised matched cells), from both although both
-    frame it."""
+    ``open_ground`` (not enclosed by raised matched cells; None: nowhere), from both
+    although both frame it."""
     offset = scene.offset
     cameras = {c.name: c for record in pairs for c in _pair_cameras(scene, record)}.values()
 
@@ -379,11 +379,13 @@ def _hidden_at_ground(scene, pairs: list[dict], dsm: Raster, dtm: Raster, cells:
                 for c in cameras}
 
     seen = seen_over(Raster(np.where(matched, dsm.data, dtm.data), dsm.transform, dsm.crs))
-    framed = seen_over(dtm)
+    framed = seen_over(dtm) if open_ground is not None else None  # the walk is the cost: only when asked
     out = np.zeros(cells.shape, bool)
     for record in pairs:
         a, b = record["images"]
-        out |= (seen[a] ^ seen[b]) | (framed[a] & framed[b] & ~seen[a] & ~seen[b] & open_ground)
+        out |= seen[a] ^ seen[b]
+        if framed is not None:
+            out |= framed[a] & framed[b] & ~seen[a] & ~seen[b] & open_ground
     return out
 
 
