@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
@@ -104,8 +104,14 @@ def point_classes(
 
 
 def footprint_depth(labels: np.ndarray, cell: float) -> np.ndarray:
-    """(rows, cols) float distance (CRS units) of each footprint cell from its outline, 0 outside."""
-    return ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * cell
+    """(rows, cols) float32 distance (CRS units) of each footprint cell from its outline, 0 outside.
+
+    OpenCV's exact Euclidean transform: scipy's to float32 rounding, in a sixth of its
+    working memory (its feature transform holds two int32 grids beside the float64
+    result: 130 MB for a 4 M-cell survey in the coordinator).
+    """
+    inside = np.pad(labels > 0, 1).astype(np.uint8)  # the grid's edge is an outline too
+    return cv2.distanceTransform(inside, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1] * np.float32(cell)
 
 
 def _off_roof(
