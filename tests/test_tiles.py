@@ -371,3 +371,34 @@ def test_tile_mosaic_windows_match_the_whole_grid(tmp_path):
     for window in [(slice(0, 14), slice(0, 22)), (slice(3, 11), slice(5, 17)), (slice(7, 9), slice(0, 30)),
                    (slice(12, 14), slice(20, 22))]:
         np.testing.assert_array_equal(mosaic[window], whole[window])
+
+
+def test_a_buildings_points_are_gathered_from_its_tiles_in_one_order(tmp_path):
+    from recon3d.pipeline.passes import gather_building_points
+
+    rng = np.random.default_rng(3)
+    xyz = rng.integers(0, 20, (500, 3)).astype(np.float64)  # many equal x: the survey order decides
+    order = rng.permutation(10_000)[:500]
+    part = rng.integers(0, 3, 500)
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"t{k}.npz")
+        np.savez(paths[-1], b7=xyz[part == k], o7=order[part == k], b8=xyz[:1], o8=order[:1])
+    expected = xyz[np.lexsort((order, xyz[:, 0]))]
+    np.testing.assert_array_equal(gather_building_points(paths, 7), expected)
+    np.testing.assert_array_equal(gather_building_points(paths[::-1], 7), expected)
+    assert gather_building_points([], 7).shape == (0, 3)
+
+
+def test_footprint_depth_is_the_euclidean_distance_to_the_outline():
+    from scipy import ndimage
+
+    from recon3d.buildings.classes import footprint_depth
+
+    rng = np.random.default_rng(4)
+    labels = ndimage.label(ndimage.binary_opening(rng.random((90, 130)) > 0.2))[0]
+    labels[:, :5] = 1  # a footprint running off the grid: its edge is an outline too
+    expected = ndimage.distance_transform_edt(np.pad(labels > 0, 1))[1:-1, 1:-1] * 0.5
+    depth = footprint_depth(labels, 0.5)
+    assert depth.dtype == np.float32 and depth[:, 0].max() == 0.5
+    np.testing.assert_allclose(depth, expected, rtol=1e-6)

@@ -34,7 +34,7 @@ from recon3d.terrain import dsm as dsm_stage
 from recon3d.terrain import dtm as dtm_stage
 from recon3d.terrain import ground as ground_stage
 
-__all__ = ["Spec", "building_points", "finish", "ground", "load", "surface", "vegetation_decide",
+__all__ = ["Spec", "building_points", "finish", "gather_building_points", "ground", "load", "surface", "vegetation_decide",
            "vegetation_features"]
 
 
@@ -227,7 +227,8 @@ def vegetation_decide(spec: Spec, tile: Tile, survey: vegetation.Survey, noise: 
 
 def building_points(spec: Spec, tile: Tile, boxes: np.ndarray, which: np.ndarray) -> dict:
     """The core points that may lie on roofs (neither ground nor vegetation) inside each
-    building's bounding box: ``b<index>`` (k, 3) xyz and ``o<index>`` (k,) survey order.
+    building's bounding box: ``b<index>`` (k, 3) xyz and ``o<index>`` (k,) survey order,
+    and ``counts`` (m,) how many each building has here.
 
     Parameters
     ----------
@@ -240,12 +241,25 @@ def building_points(spec: Spec, tile: Tile, boxes: np.ndarray, which: np.ndarray
     roof = ~load(spec, tile, "ground", "is_ground")["is_ground"]
     roof &= ~load(spec, tile, "vegetation_decide", "vegetation")["vegetation"]
     xyz, order = pts.cloud.xyz[roof], pts.order[roof]
-    out = {}
-    for (x0, y0, x1, y1), i in zip(boxes, which, strict=True):
+    out = {"counts": np.zeros(len(which), np.int64)}
+    for k, ((x0, y0, x1, y1), i) in enumerate(zip(boxes, which, strict=True)):
         inside = (xyz[:, 0] >= x0) & (xyz[:, 0] <= x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1)
         if inside.any():
             out[f"b{i}"], out[f"o{i}"] = xyz[inside], order[inside]
+            out["counts"][k] = np.count_nonzero(inside)
     return out
+
+
+def gather_building_points(paths: list[Path], index: int) -> np.ndarray:
+    """(k, 3) the points of building ``index`` that :func:`building_points` saved in the
+    tile results ``paths``, sorted by x (then survey order): the same whatever the tiling."""
+    xyz, order = [np.zeros((0, 3))], [np.zeros(0, np.int64)]
+    for path in paths:
+        with np.load(path) as data:
+            xyz.append(data[f"b{index}"])
+            order.append(data[f"o{index}"])
+    xyz, order = np.concatenate(xyz), np.concatenate(order)
+    return xyz[np.lexsort((order, xyz[:, 0]))]
 
 
 def model_dsm(spec: Spec, tile: Tile, dtm: Raster, model: Any, top: float) -> dict:
@@ -399,8 +413,7 @@ def _provider_scores(spec: Spec, own: TilePoints, point_classes: np.ndarray, f: 
     out = {
         "vegetation_counts": np.array(building_quality.vegetation_counts(truth, point_classes), np.int64),
         "coverage_counts": evaluate.coverage_counts(cloud, ref, f.labels, f.dtm),
-        "ground_order": own.order[ground],
-        "ground_errors": f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2],
+        "ground_errors": (f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2]).astype(np.float32),
     }
     window, valid, building = reference
     out.update(reference_window=window, reference_valid=valid, reference_building=building)

@@ -29,7 +29,6 @@ def write_products(r: Run) -> None:
     from recon3d.io.obj import write_obj
     from recon3d.io.tiles3d import write_3dtiles
 
-    r.executor.close()  # no stage needs the workers now: their memory back before the products and the report
     w, q, city = r.work_dir, r.quality, r.city
     sf, t = r.surface, r.terrain
     for name, raster in ((P.DSM, sf.dsm), (P.DTM, t.dtm), (P.NDSM, t.ndsm), (P.MODEL_DSM, q.model_dsm)):

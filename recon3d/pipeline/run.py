@@ -147,7 +147,6 @@ class Surface:
     unobserved: np.ndarray | None = None  # stereo: cells holding no observed point
     consistent: np.ndarray | None = None  # stereo: cells holding a guess with evidence (images agree, or foreground)
     common_area: np.ndarray | None = None  # stereo: cells both images of a matched pair see
-    points: np.ndarray | None = None  # points per cell
     first_returns: int = 0
     surface_bounds: tuple[np.ndarray, np.ndarray] | None = None  # first returns, not noise
     ground_surface: tuple | None = None  # lowest trusted point per cell of the ground filter's grid, its transform
@@ -176,7 +175,7 @@ class Evidence:
     """What the points say of the cells, for the building detection."""
 
     share: np.ndarray  # share of vegetation among each cell's upper points
-    planar: np.ndarray  # share of each cell's upper points on a local plane
+    planar: np.ndarray | None  # share of each cell's upper points on a local plane, until the detection
     fine: detect.FineSurface | None  # the detection's alone, read from the tiles a strip at a time
     plane_tolerance: float
     density: float  # first returns per square metre
@@ -636,7 +635,7 @@ def make_dsm(r: Run) -> None:
     hole_area = cfg.max_hole_area if cfg.max_hole_area is not None else defaults[0]
     r.auto["dsm.max_hole_area"] = {"value": hole_area, "reason": "config" if cfg.max_hole_area is not None else defaults[1]}
     gtransform, gshape = ground_stage.surface_grid(s.summary.bounds, ground_stage.surface_cell(r.config.ground, u, res)[0])
-    paths = r.tiles("surface", passes.surface, [(gtransform, gshape)] * len(g.tiles))
+    paths = r.passes["surface"] = r.tiles("surface", passes.surface, [(gtransform, gshape)] * len(g.tiles))
     raw = g.place(paths, "dsm")
     count = g.place(paths, "count", fill=0.0)
     zmin = np.full(gshape, np.nan)
@@ -685,7 +684,7 @@ def make_dsm(r: Run) -> None:
         if unobserved is not None:
             unobserved &= common
     upper_median = g.place(paths, "dsm_upper_median") if stereo == "frame" and observed is not None else None
-    r.surface = Surface(dsm, filled, unobserved, consistent_cells, common, g.place(paths, "points", fill=0.0), first,
+    r.surface = Surface(dsm, filled, unobserved, consistent_cells, common, first,
                         (lo, hi), (zmin, gtransform), upper_median, foreground_cells)
     if stereo == "frame":
         _check_common_area(r)
@@ -732,6 +731,7 @@ def classify_ground(r: Run) -> None:
         if s.quality_cut is not None:
             params["quality_cut"] = {"value": s.quality_cut, "reason": ground_stage.QUALITY_CUT_REASON}
         surface = ground_stage.minimum_surface(*r.surface.ground_surface, cfg, u, params)
+        r.surface.ground_surface = None  # the filter's alone
         method, why = ground_stage.pick_method(cfg, "number_of_returns" in s.dtypes, surface.noise * u.vertical)
         params["method"] = {"value": method, "reason": why}
         terrain = ground_stage.terrain(surface, method, u)
@@ -1004,6 +1004,7 @@ def find_buildings(r: Run) -> None:
         r.auto["reference_date"] = {"value": r.date, "reason": "the input holds no date: the day the run started "
                                     "(SOURCE_DATE_EPOCH sets another)"}
     r.labels = labels
+    ev.planar = None  # the detection's alone: the coordinator's memory grows with the area
     r.city = CityModel(buildings, s.crs, LocalFrame.around(s.summary.bounds[0], step=u.length(100.0)), meta)
 
 
@@ -1179,8 +1180,9 @@ def build_solids(r: Run) -> None:
         b.footprint = poly
         built.append(b)
         boxes.append(poly.bounds)
-    points = _building_points(r, np.array(boxes, np.float64).reshape(-1, 4))
-    jobs = [(b.footprint, pts, b.ground_z, b.roof_z, city.frame, r.config.lod, u) for b, pts in zip(built, points, strict=True)]
+    sources, counts = _building_points(r, np.array(boxes, np.float64).reshape(-1, 4))
+    jobs = [(b.footprint, (paths, k), b.ground_z, b.roof_z, city.frame, r.config.lod, u)
+            for k, (b, paths) in enumerate(zip(built, sources, strict=True))]
     if r.workers:
         workers, why = r.workers, "given (--workers, or run(workers=))"
     elif len(jobs) < _PARALLEL_FROM:
@@ -1195,7 +1197,7 @@ def build_solids(r: Run) -> None:
 
     # the largest first, so that no worker is left with a big building at the end
     # (longest processing time first); each result goes back to its building
-    order = sorted(range(len(jobs)), key=lambda k: -len(jobs[k][1]))
+    order = sorted(range(len(jobs)), key=lambda k: -counts[k])
     results = [None] * len(jobs)
     for k, res in zip(order, r.executor.map(_build_lods, [jobs[k] for k in order], done=done, workers=workers),
                       strict=True):
@@ -1261,9 +1263,11 @@ def _drop_crowns(r: Run) -> None:
                    f"their surface is rough (their points are vegetation): {', '.join(ids[:20])}")
 
 
-def _building_points(r: Run, boxes: np.ndarray) -> list[np.ndarray]:
-    """(k, 3) points that may lie on each building's roof (neither ground nor vegetation)
-    inside its bounding box, from every tile it touches, sorted by x (then survey order)."""
+def _building_points(r: Run, boxes: np.ndarray) -> tuple[list[list[Path]], np.ndarray]:
+    """Where the points that may lie on each building's roof (neither ground nor
+    vegetation, inside its bounding box) are kept: the results of the tiles holding some,
+    and how many there are. Each building's job reads its own
+    (:func:`passes.gather_building_points`), so this process never holds them all."""
     g = r.grid
     args = []
     for tile in g.tiles:
@@ -1271,21 +1275,15 @@ def _building_points(r: Run, boxes: np.ndarray) -> list[np.ndarray]:
         touch = np.flatnonzero((boxes[:, 0] <= x1) & (boxes[:, 2] >= x0) & (boxes[:, 1] <= y1) & (boxes[:, 3] >= y0))
         args.append((boxes[touch], touch))
     paths = r.tiles("building_points", passes.building_points, args)
-    parts: list[list] = [[] for _ in range(len(boxes))]
+    sources: list[list[Path]] = [[] for _ in range(len(boxes))]
+    counts = np.zeros(len(boxes), np.int64)
     for path, (_, touch) in zip(paths, args, strict=True):
         with np.load(path) as data:
-            for i in touch:
-                if f"b{i}" in data:
-                    parts[i].append((data[f"b{i}"], data[f"o{i}"]))
-    out = []
-    for p in parts:
-        if not p:
-            out.append(np.zeros((0, 3)))
-            continue
-        xyz = np.concatenate([a for a, _ in p])
-        order = np.concatenate([o for _, o in p])
-        out.append(xyz[np.lexsort((order, xyz[:, 0]))])
-    return out
+            here = data["counts"]
+        for i in touch[here > 0]:
+            sources[i].append(path)
+        counts[touch] += here
+    return sources, counts
 
 
 def _empty_share(r: Run) -> np.ndarray:
@@ -1302,7 +1300,8 @@ def _build_lods(job: tuple) -> tuple[lod.LodResult, dict]:
     a worker process runs this for :func:`build_solids`."""
     from recon3d.quality.roofs import fit_quality
 
-    poly, pts, ground_z, roof_z, frame, config, units = job
+    poly, (paths, index), ground_z, roof_z, frame, config, units = job
+    pts = passes.gather_building_points(paths, index)
     res = lod.build_lods(poly, pts, ground_z, roof_z, frame, config, units=units)
     return res, fit_quality(Building("", poly, ground_z, roof_z, solids=dict(res.solids)), pts, frame, units)
 
@@ -1320,8 +1319,8 @@ def rasterize_model(r: Run) -> None:
         near = _touching(solids, g.spec.bounds(tile.rows, tile.cols), margin=g.transform.a)
         args.append((dtm.window(tile.rows, tile.cols), CityModel(near, city.crs, city.frame), top))
     paths = r.tiles("model_dsm", passes.model_dsm, args)
-    r.quality.model_dsm = dtm.like(g.place(paths, "model"), **model_tags())
-    r.quality.roof_cover = g.place(paths, "cover", fill=0.0)
+    r.quality.model_dsm = dtm.like(g.place(paths, "model", np.float32), **model_tags())  # float32 tiles
+    r.quality.roof_cover = g.place(paths, "cover", np.float32, 0.0)  # k / samples**2: 1 stays exactly 1
 
 
 def _touching(buildings: list[Building], box: tuple, *, margin: float = 0.0) -> list[Building]:
@@ -1470,7 +1469,9 @@ def evaluate_products(r: Run) -> None:
 def _finish_pass(r: Run, reference_grid) -> list[Path]:
     """The tiles' last pass (:func:`passes.finish`); what they share is let go with it."""
     shared = _finish_shared(r)
-    return r.tiles("finish", passes.finish, [(_finish_args(r, tile, shared, reference_grid),) for tile in r.grid.tiles])
+    paths = r.tiles("finish", passes.finish, [(_finish_args(r, tile, shared, reference_grid),) for tile in r.grid.tiles])
+    r.executor.close()  # the last pass: the workers' memory back before the evaluation, the products and the report
+    return paths
 
 
 def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> AccuracyReport:
@@ -1482,6 +1483,7 @@ def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> Accu
     counts = {k: 0 for k in ("vegetation_counts", "coverage_counts")}
     valid_grid = np.zeros(reference_grid.shape, bool)  # each tile's block in place
     ref_grid = np.zeros(reference_grid.shape, bool)
+    n_ground = 0
     for path in paths:
         with np.load(path) as data:
             for k in counts:
@@ -1489,6 +1491,7 @@ def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> Accu
             r0, r1, c0, c1 = data["reference_window"]
             valid_grid[r0:r1, c0:c1] = data["reference_valid"]
             ref_grid[r0:r1, c0:c1] = data["reference_building"]
+            n_ground += len(data["ground_errors"])
     area = building_quality.score_against_reference(
         [b.footprint for b in r.city if b.solids], reference_grid, ref_grid, valid_grid, units=r.units)
     del valid_grid, ref_grid
@@ -1500,12 +1503,15 @@ def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> Accu
                f"(expected under {MAX_VEGETATION_AS_BUILDING:g} %): trees may have been taken for buildings; "
                "the report's building detection compares both")
     r.report["buildings_vs_provider"] = evaluate.coverage_scores(counts["coverage_counts"])
-    order, errors = [], []  # read after the grids are let go: 130 MB on a 20 M-point survey
+    # one array of every provider ground point's error, read after the grids are let go;
+    # sorted, it is the same whatever the tiling, and so are the sums of the table
+    errors, at = np.empty(n_ground, np.float32), 0
     for path in paths:
         with np.load(path) as data:
-            order.append(data["ground_order"])
-            errors.append(data["ground_errors"])
-    errors = np.concatenate(errors)[np.argsort(np.concatenate(order), kind="stable")]  # the survey's order
+            part = data["ground_errors"]
+            errors[at:at + len(part)] = part
+            at += len(part)
+    errors.sort()
     return AccuracyReport.from_errors(errors, product="DTM", reference="provider ground points",
                                       metres_per_unit=r.units.vertical)
 
@@ -1563,7 +1569,8 @@ def detect_changes(r: Run) -> None:
         r.source.old_buildings, r.city, t.ndsm, units=r.units,
         config=change.ChangeParams(height_field=cfg.height_field, height_reference=cfg.height_reference),
         vegetation=t.ndsm.like(r.evidence.vegetated.astype(np.float32)),
-        density=t.ndsm.like(r.surface.points / g.transform.a**2, product="point density"),
+        density=t.ndsm.like(g.place(r.passes["surface"], "points", np.float32, 0.0) / g.transform.a**2,
+                            product="point density"),
     )
     for message in q.changes.warnings:
         r.warn(message)
