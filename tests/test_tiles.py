@@ -402,3 +402,20 @@ def test_footprint_depth_is_the_euclidean_distance_to_the_outline():
     depth = footprint_depth(labels, 0.5)
     assert depth.dtype == np.float32 and depth[:, 0].max() == 0.5
     np.testing.assert_allclose(depth, expected, rtol=1e-6)
+
+
+def test_spilled_grids_keep_their_values_after_their_pages_are_released(tmp_path):
+    from recon3d.pipeline.spill import Spill
+
+    rng = np.random.default_rng(6)
+    spill = Spill(tmp_path / "grids")
+    grids = [rng.random((300, 200)).astype(np.float32), rng.random((70, 90)) > 0.5,
+             rng.integers(0, 9, (40, 40)).astype(np.int32), np.zeros((0, 5), np.float32)]
+    mapped = [spill(g) for g in grids]
+    mapped[0][5, 7] = -1.0  # writable, and kept
+    spill.release()
+    grids[0][5, 7] = -1.0
+    for g, m in zip(grids, mapped, strict=True):
+        assert m.dtype == g.dtype and m.shape == g.shape
+        np.testing.assert_array_equal(m, g)
+    assert len(list((tmp_path / "grids").iterdir())) == 3  # nothing to map for an empty grid
