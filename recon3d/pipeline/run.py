@@ -214,6 +214,7 @@ class Run:
     executor: Executor
     workers: int | None
     date: str  # the products' date when the input holds none: the day the run started
+    grids: Spill  # maps the whole-area grids from the work folder once the buildings are found
     progress: Callable[[str], None] | None = None
     keep_points: bool | None = None
     source: Source = field(default_factory=Source)
@@ -230,11 +231,6 @@ class Run:
     warnings: list[str] = field(default_factory=list)
     report: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
-    grids: Spill | None = None  # maps the whole-area grids from the work folder once the buildings are found
-
-    def mapped(self, grid: np.ndarray) -> np.ndarray:
-        """``grid`` mapped from a file of the work folder (:mod:`spill`), or itself without one."""
-        return grid if self.grids is None else self.grids(grid)
 
     def warn(self, message: str) -> None:
         """A warning the user must see: logged (the terminal), kept for run.json and the report."""
@@ -425,8 +421,7 @@ def run(
             start = time.perf_counter()
             stage(r)
             release_memory()
-            if r.grids is not None:
-                r.grids.release()
+            r.grids.release()
             r.timings[name] = round(time.perf_counter() - start, 3)
             log.info("stage %s done in %.2f s", name, r.timings[name])
         result = _result(r)
@@ -957,7 +952,7 @@ def classify_vegetation(r: Run) -> None:
 #: its block split holds this process's largest grids (about 90 bytes a cell), which
 #: beyond 2 M cells (0.5 km2 at 0.5 m) outweigh two idle workers' memory, so the run's
 #: peak is lower without them; below, starting them again (about a second) costs more.
-#: The 64 x Delft survey (4.2 M cells, 2 workers): peak 0.97 -> 0.88 GB.
+#: The 64 x Delft survey (4.2 M cells, 2 workers): peak 0.97 -> 0.89 GB.
 STOP_WORKERS_CELLS = 2_000_000
 
 
@@ -1032,12 +1027,12 @@ def _spill_grids(r: Run) -> None:
     solids: this process's memory no longer grows with the area (see :mod:`spill`)."""
     sf, t = r.surface, r.terrain
     for raster in (sf.dsm, t.dtm, t.ndsm):
-        raster.data = r.mapped(raster.data)
+        raster.data = r.grids(raster.data)
     for name in ("filled", "unobserved", "consistent", "common_area", "foreground"):
         if getattr(sf, name) is not None:
-            setattr(sf, name, r.mapped(getattr(sf, name)))
-    r.evidence.share = r.mapped(r.evidence.share)
-    r.labels = r.mapped(r.labels)
+            setattr(sf, name, r.grids(getattr(sf, name)))
+    r.evidence.share = r.grids(r.evidence.share)
+    r.labels = r.grids(r.labels)
 
 
 def _median_outside_buildings(r: Run, labels: np.ndarray) -> None:
@@ -1351,8 +1346,8 @@ def rasterize_model(r: Run) -> None:
         near = _touching(solids, g.spec.bounds(tile.rows, tile.cols), margin=g.transform.a)
         args.append((dtm.window(tile.rows, tile.cols), CityModel(near, city.crs, city.frame), top))
     paths = r.tiles("model_dsm", passes.model_dsm, args)
-    r.quality.model_dsm = dtm.like(r.mapped(g.place(paths, "model", np.float32)), **model_tags())  # float32 tiles
-    r.quality.roof_cover = r.mapped(g.place(paths, "cover", np.float32, 0.0))  # k / samples**2: 1 stays exactly 1
+    r.quality.model_dsm = dtm.like(r.grids(g.place(paths, "model", np.float32)), **model_tags())  # float32 tiles
+    r.quality.roof_cover = r.grids(g.place(paths, "cover", np.float32, 0.0))  # k / samples**2: 1 stays exactly 1
 
 
 def _touching(buildings: list[Building], box: tuple, *, margin: float = 0.0) -> list[Building]:
