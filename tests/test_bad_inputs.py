@@ -120,3 +120,19 @@ def test_las_headers_that_claim_too_much(tmp_path, offset, value, needle):
     path.write_bytes(bytes(data))
     with pytest.raises(InputError, match=needle):  # from the header, before anything is allocated
         read_las(path)
+
+
+def test_a_las_header_with_a_nan_offset_is_refused(tmp_path):
+    """Coordinates are finite when the header's scales and offsets are (the readers check
+    the header, not every point); a NaN offset makes every x NaN and is named."""
+    from recon3d.core.geo import parse_crs
+    from recon3d.errors import InputError
+    from recon3d.io.las import read_las
+
+    path = _las(tmp_path / "a.las", _field(200))
+    las = laspy.read(path)
+    las.header.offsets = np.array([np.nan, las.header.offsets[1], las.header.offsets[2]])
+    with np.errstate(invalid="ignore"):  # laspy casts the NaN x back to integers on writing
+        las.write(path)
+    with pytest.raises(InputError, match="a.las: 200 points have NaN or infinite coordinates"):
+        read_las(path, crs=parse_crs("EPSG:32631"))

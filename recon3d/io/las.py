@@ -74,7 +74,7 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
         raise InputError(f"{path}: cannot read LAS/LAZ ({_short(exc)})") from None
     if len(xyz) == 0:
         raise InputError(f"{path}: the point cloud is empty (0 points)")
-    if not np.isfinite(xyz).all():
+    if not scaling_is_finite(las.header) and not np.isfinite(xyz).all():
         raise InputError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points have NaN or infinite coordinates")
     names = set(las.point_format.dimension_names)
     attributes = {n: np.asarray(las[n]).copy() for n in KEPT_DIMENSIONS if n in names}
@@ -83,6 +83,14 @@ def read_las(path: str | Path, *, crs: pyproj.CRS | None = None) -> PointCloud:
     if resolved is not None:
         check_area_of_use(resolved, *column_bounds(xyz), source=str(path))
     return PointCloud(xyz, attributes, resolved)
+
+
+def scaling_is_finite(header) -> bool:
+    """Whether every coordinate of a LAS/LAZ file is finite: the integer records times
+    finite scales plus finite offsets always are, so the header tells without a pass
+    over the points (only a NaN or infinite scale or offset makes a NaN or infinite one)."""
+    return bool(np.isfinite(header.scales).all() and np.isfinite(header.offsets).all()
+                and (np.abs(header.scales) < 1e290).all())
 
 
 #: Suffixes of the point files a folder or a glob of tiles is made of.

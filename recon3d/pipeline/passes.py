@@ -110,16 +110,15 @@ def _highest(spec: Spec, cloud: PointCloud, grid: Raster, per_source: str | tupl
     highest surface point (not noise) per cell, or for stereo the highest (frame) or
     median (satellite) observed point per pair and the median over the pairs
     (``per_source`` chooses another, or several: see :func:`~recon3d.terrain.dsm.grid_stereo`)."""
-    keep = dsm_stage.surface_points(cloud)
-    xyz, a = cloud.xyz[keep], cloud.attributes
+    keep, a = dsm_stage.surface_points(cloud), cloud.attributes
     if spec.stereo and "observed" in a:
         source = a.get("point_source_id")
         return dsm_stage.grid_stereo(
-            xyz, grid.transform, grid.shape, observed=(a["observed"] > 0)[keep],
+            cloud.xyz[keep], grid.transform, grid.shape, observed=(a["observed"] > 0)[keep],
             source=None if source is None else source[keep],
             per_source=per_source or ("median" if spec.stereo == "satellite" else "max"), origin=grid.origin,
         )
-    return dsm_stage.grid_points(xyz, grid.transform, grid.shape, reducer="max", origin=grid.origin)
+    return dsm_stage.grid_points(cloud.xyz, grid.transform, grid.shape, reducer="max", origin=grid.origin, keep=keep)
 
 
 # --------------------------------------------------------------------------- passes
@@ -135,7 +134,6 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     grid = spec.grid(tile)
     T, shape, origin = grid.transform, grid.shape, grid.origin
     keep = dsm_stage.surface_points(cloud)
-    xyz = cloud.xyz[keep]
     out: dict[str, Any] = {}
     # frame stereo: the upper median for the cells outside the buildings (run._median_outside_buildings)
     if spec.stereo == "frame" and "observed" in a:
@@ -143,12 +141,13 @@ def surface(spec: Spec, tile: Tile, ground_transform: Affine, ground_shape: tupl
     else:
         out["dsm"] = _highest(spec, cloud, grid)
     if spec.stereo and "observed" in a:
-        out["observed"] = dsm_stage.grid_points(cloud.xyz[a["observed"] > 0], T, shape, reducer="count", origin=origin)
+        out["observed"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin,
+                                                keep=a["observed"] > 0)
         if "consistent" in a:
             # 1: the images agree with the guess; 2: filled beyond an occlusion's width
             for key, held in (("consistent", a["consistent"] > 0), ("foreground", a["consistent"] == 2)):
-                out[key] = dsm_stage.grid_points(cloud.xyz[held], T, shape, reducer="count", origin=origin)
-    out["count"] = dsm_stage.grid_points(xyz, T, shape, reducer="count", origin=origin)
+                out[key] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin, keep=held)
+    out["count"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin, keep=keep)
     out["points"] = dsm_stage.grid_points(cloud.xyz, T, shape, reducer="count", origin=origin)
     first = np.asarray(a["return_number"]) <= 1 if "return_number" in a else np.ones(len(cloud), bool)
     out["first_returns"] = np.int64(first.sum())
@@ -177,7 +176,7 @@ def ground(spec: Spec, tile: Tile, terrain: Raster | None, noise: float, method:
     if spec.stereo and "observed" in a:
         shaping = shaping & (a["observed"] > 0)  # a filled-in disparity is no ground
     grid = spec.grid(tile)
-    mean, count = dtm_stage.ground_cells(cloud.xyz[shaping], grid.transform, grid.shape, origin=grid.origin)
+    mean, count = dtm_stage.ground_cells(cloud.xyz, grid.transform, grid.shape, origin=grid.origin, keep=shaping)
     out = {"is_ground": is_ground, "for_dtm": for_dtm, "mean": mean, "count": count}
     if spec.summary.provider_classes:
         out["filter_counts"] = evaluate.filter_counts(is_ground, cloud.classification)

@@ -420,15 +420,18 @@ def _bucket_file(job: tuple) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
     worker's job: files are read in parallel); its raw bounds and its points per metre of height."""
     import laspy
 
+    from recon3d.io.las import scaling_is_finite
+
     path, index, base, names, dtype, bucket, folder = job
     heights: dict[int, int] = {}
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     read = 0
     try:
         with laspy.open(path) as reader:
+            finite = scaling_is_finite(reader.header)
             for chunk in reader.chunk_iterator(CHUNK):
-                xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64)
-                if not np.isfinite(xyz).all():
+                xyz = np.column_stack([chunk.x, chunk.y, chunk.z]).astype(np.float64, copy=False)
+                if not finite and not np.isfinite(xyz).all():
                     raise InputError(f"{path}: {int((~np.isfinite(xyz)).any(axis=1).sum())} points "
                                      "have NaN or infinite coordinates")
                 rec = np.empty(len(xyz), dtype)

@@ -104,7 +104,8 @@ def choose_resolution(spacing: float, units: Units) -> tuple[float, str]:
 
 
 def grid_points(
-    xyz: np.ndarray, transform, shape: tuple[int, int], *, reducer: str = "max", origin: tuple[int, int] = (0, 0)
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, reducer: str = "max", origin: tuple[int, int] = (0, 0),
+    keep: np.ndarray | None = None,
 ) -> np.ndarray:
     """Reduce point heights per grid cell.
 
@@ -117,6 +118,9 @@ def grid_points(
     origin : (row, col)
         The grid is the window of ``transform``'s grid starting at this cell (see
         :class:`~recon3d.core.raster.Raster`), so a tile's cells are those of the whole grid.
+    keep : (n,) bool, optional
+        The points to use (all by default): the others' cells are left out, the points
+        are not copied out.
 
     Returns
     -------
@@ -124,21 +128,43 @@ def grid_points(
         NaN in cells without points (0 for "count").
     """
     rows, cols = shape
-    idx, ok = cell_index(xyz, transform, shape, origin=origin)
-    z = xyz[:, 2]
-    if ok is not None:
-        idx, z = idx[ok], z[ok]
+    idx, z = _kept_cells(xyz, transform, shape, origin, keep)
     if reducer == "count":
         return np.bincount(idx, minlength=rows * cols).reshape(shape).astype(np.float64)
     if reducer == "mean":
-        s = np.bincount(idx, weights=z, minlength=rows * cols)
-        c = np.bincount(idx, minlength=rows * cols)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(c > 0, s / c, np.nan).reshape(shape)
+        return _mean(idx, z, shape)[0]
+    if reducer not in ("max", "min"):
+        raise ValueError(f"reducer {reducer!r}: expected 'max', 'min', 'mean' or 'count'")
     out = np.full(rows * cols, -np.inf if reducer == "max" else np.inf)
     (np.maximum if reducer == "max" else np.minimum).at(out, idx, z)
     out[~np.isfinite(out)] = np.nan
     return out.reshape(shape)
+
+
+def mean_and_count(
+    xyz: np.ndarray, transform, shape: tuple[int, int], *, origin: tuple[int, int] = (0, 0),
+    keep: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean height per cell (NaN without points) and the number of points, (rows, cols)
+    float64 each, the points' cells found once (as :func:`grid_points`)."""
+    return _mean(*_kept_cells(xyz, transform, shape, origin, keep), shape)
+
+
+def _kept_cells(xyz, transform, shape, origin, keep) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) flat cells and heights of the points of ``keep`` (all by default) on the grid."""
+    idx, ok = cell_index(xyz, transform, shape, origin=origin)
+    if keep is not None:
+        ok = keep if ok is None else ok & keep
+    z = xyz[:, 2]
+    return (idx, z) if ok is None else (idx[ok], z[ok])
+
+
+def _mean(idx: np.ndarray, z: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    total = np.bincount(idx, weights=z, minlength=shape[0] * shape[1])
+    count = np.bincount(idx, minlength=shape[0] * shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(count > 0, total / count, np.nan)
+    return mean.reshape(shape), count.reshape(shape).astype(np.float64)
 
 
 def cell_index(

@@ -274,8 +274,8 @@ def lowest_points(
     score = cloud.attributes.get("quality")
     if score is not None and quality_cut is not None:
         keep &= score >= quality_cut
-    xyz = cloud.xyz if keep.all() or not keep.any() else cloud.xyz[keep]  # no copy when all are kept
-    return grid_points(xyz, transform, shape, reducer="min", origin=origin)
+    keep = None if keep.all() or not keep.any() else keep
+    return grid_points(cloud.xyz, transform, shape, reducer="min", origin=origin, keep=keep)
 
 
 def minimum_surface(
