@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,16 +24,27 @@ __all__ = ["run_record", "write_json", "write_products"]
 
 
 def write_products(r: Run) -> None:
-    """Every product of the run into ``r.work_dir`` (see DESIGN.md's output contract)."""
-    from recon3d.io.cityjson import write_cityjson
-    from recon3d.io.gltf import write_glb
-    from recon3d.io.obj import write_obj
-    from recon3d.io.tiles3d import write_3dtiles
+    """Every product of the run into ``r.work_dir`` (see DESIGN.md's output contract).
 
-    w, q, city = r.work_dir, r.quality, r.city
-    sf, t = r.surface, r.terrain
+    The rasters and cloud.laz go on a second thread while this one writes the models and
+    the vectors: GDAL and lazrs let go of the interpreter while they compress, the model
+    writers are Python, so the two overlap on two cores (the 16 x Delft survey's write
+    stage, two runs each: 3.7 s one after the other, 3.3-3.4 s side by side). Each
+    file's bytes depend on its inputs alone, not on which thread finishes first.
+    """
+    for raster in (r.surface.dsm, r.terrain.dtm, r.terrain.ndsm, r.quality.model_dsm):
+        raster.tags.setdefault("height_units", r.units.name)  # before the threads share the rasters
+    with ThreadPoolExecutor(1) as pool:
+        rasters = pool.submit(_write_rasters_and_cloud, r)
+        _write_models(r)
+        rasters.result()
+    r.report["warnings"] = r.warnings
+    write_json(r.work_dir / P.REPORT, r.report)
+
+
+def _write_rasters_and_cloud(r: Run) -> None:
+    w, q, sf, t = r.work_dir, r.quality, r.surface, r.terrain
     for name, raster in ((P.DSM, sf.dsm), (P.DTM, t.dtm), (P.NDSM, t.ndsm), (P.MODEL_DSM, q.model_dsm)):
-        raster.tags.setdefault("height_units", r.units.name)
         write_raster(raster, w / name)
     if q.ortho is not None:
         from recon3d.io.geotiff import write_image
@@ -42,6 +54,15 @@ def write_products(r: Run) -> None:
         write_image(q.ortho.data, grid, w / P.ORTHO, mask=q.ortho.seen)
         write_raster(q.ortho_diff, w / P.ORTHO_DIFF)
     write_cloud(r, w / P.CLOUD)
+
+
+def _write_models(r: Run) -> None:
+    from recon3d.io.cityjson import write_cityjson
+    from recon3d.io.gltf import write_glb
+    from recon3d.io.obj import write_obj
+    from recon3d.io.tiles3d import write_3dtiles
+
+    w, q, city = r.work_dir, r.quality, r.city
     write_cityjson(city, w / P.CITY)
     write_obj(city, w / P.OBJ)
     write_glb(city, w / P.GLB)
@@ -56,10 +77,8 @@ def write_products(r: Run) -> None:
 
         geoms, props = change.change_features(q.changes)
         vectors.write_features(w / P.CHANGES, geoms, props, city.crs)
-        write_raster(change.change_raster(q.changes, sf.dsm), w / P.CHANGES_RASTER)
+        write_raster(change.change_raster(q.changes, r.surface.dsm), w / P.CHANGES_RASTER)
         write_cityjson(change.updated_model(r.source.old_buildings, city, q.changes), w / P.UPDATED_CITY)
-    r.report["warnings"] = r.warnings
-    write_json(w / P.REPORT, r.report)
 
 
 def write_cloud(r: Run, path: Path) -> None:
