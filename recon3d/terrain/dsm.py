@@ -23,6 +23,7 @@ __all__ = [
     "grid_points",
     "grid_stereo",
     "make_dsm",
+    "mean_and_count",
     "point_spacing",
     "seen_by_all",
     "surface_points",

@@ -14,7 +14,8 @@ from recon3d.terrain.dsm import grid_points, mean_and_count
 
 log = logging.getLogger(__name__)
 
-__all__ = ["densify_lines", "dtm_from_cells", "fill_gaps", "fill_nearest", "ground_cells", "make_dtm", "make_ndsm", "raise_to_terrain"]
+__all__ = ["densify_lines", "dtm_from_cells", "fill_gaps", "fill_nearest", "ground_cells", "hilbert_order",
+           "make_dtm", "make_ndsm", "raise_to_terrain"]
 
 
 def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
