@@ -412,7 +412,8 @@ def _provider_scores(spec: Spec, own: TilePoints, point_classes: np.ndarray, f: 
     out = {
         "vegetation_counts": np.array(building_quality.vegetation_counts(truth, point_classes), np.int64),
         "coverage_counts": evaluate.coverage_counts(cloud, ref, f.labels, f.dtm),
-        "ground_errors": (f.dtm.sample(xyz[ground, 0], xyz[ground, 1]) - xyz[ground, 2]).astype(np.float32),
+        "ground_errors": (-height[ground]).astype(np.float32),  # the DTM minus the point: the same bits
+        "ground_count": np.int64(np.count_nonzero(ground)),
     }
     window, valid, building = reference
     out.update(reference_window=window, reference_valid=valid, reference_building=building)

@@ -1518,7 +1518,7 @@ def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> Accu
             r0, r1, c0, c1 = data["reference_window"]
             valid_grid[r0:r1, c0:c1] = data["reference_valid"]
             ref_grid[r0:r1, c0:c1] = data["reference_building"]
-            n_ground += len(data["ground_errors"])
+            n_ground += int(data["ground_count"])
     area = building_quality.score_against_reference(
         [b.footprint for b in r.city if b.solids], reference_grid, ref_grid, valid_grid, units=r.units)
     del valid_grid, ref_grid

@@ -128,14 +128,14 @@ def grid_points(
     (rows, cols) float64
         NaN in cells without points (0 for "count").
     """
+    if reducer not in ("max", "min", "mean", "count"):
+        raise ValueError(f"reducer {reducer!r}: expected 'max', 'min', 'mean' or 'count'")
     rows, cols = shape
     idx, z = _kept_cells(xyz, transform, shape, origin, keep)
     if reducer == "count":
         return np.bincount(idx, minlength=rows * cols).reshape(shape).astype(np.float64)
     if reducer == "mean":
         return _mean(idx, z, shape)[0]
-    if reducer not in ("max", "min"):
-        raise ValueError(f"reducer {reducer!r}: expected 'max', 'min', 'mean' or 'count'")
     out = np.full(rows * cols, -np.inf if reducer == "max" else np.inf)
     (np.maximum if reducer == "max" else np.minimum).at(out, idx, z)
     out[~np.isfinite(out)] = np.nan
