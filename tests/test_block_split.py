@@ -197,3 +197,71 @@ def test_distance_is_the_euclidean_transform():
     mask = rng.random((80, 120)) > 0.03
     mask[:, :4] = True  # open to the grid's edge
     np.testing.assert_allclose(detect._distance(mask), ndimage.distance_transform_edt(mask), atol=1e-5)
+
+
+def _mosaic() -> np.ndarray:
+    """(240, 360) nDSM of rows of houses of every kind, some of them touching."""
+    a, b, c = (_row(w, e, rise, ridge=ridge, seed=k)[0].data for k, (w, e, rise, ridge) in enumerate((
+        ([6.0, 7.0, 5.5, 6.5], [7.0, 8.2, 9.5, 8.3], 0.0, "along"),
+        ([6.0, 7.0, 6.5], [7.0, 8.0, 9.4], 3.0, "along"),
+        ([6.5, 7.0, 6.0, 7.5], [6.0, 7.5, 6.2, 7.4], 2.5, "across"),
+    )))
+    touching = np.maximum(b, np.roll(a + 4.0 * (a > 2.5), 22, axis=0))  # a block higher by 4 m against b
+    tiles = [[a, b, c], [c, touching, a]]
+    return np.block(tiles).astype(np.float32)
+
+
+def _split(height: np.ndarray) -> np.ndarray:
+    labels, _ = detect.split_by_height(height, height > 2.5, 2.0)
+    cfg = BuildingsConfig()
+    return detect.split_at_steps(height, labels, RES, min_step=cfg.split_step, min_area=cfg.min_area,
+                                 min_width=cfg.min_split_width, valley_drop=detect.VALLEY_DROP, valley_reach=1.0)[0]
+
+
+@pytest.mark.parametrize("window", [16, 50, 130])
+def test_blocks_cut_a_window_at_a_time_as_over_the_whole_grid(monkeypatch, window):
+    """Windows of any size give the labels of one window over the whole grid: each part
+    is cut from its own cells and numbered as one labelling of the grid numbers it."""
+    height = _mosaic()
+    whole = _split(height)
+    assert whole.max() >= 18  # the six rows' houses (two pairs of rows touch)
+    monkeypatch.setattr(detect, "SPLIT_WINDOW", window)
+    monkeypatch.setattr(detect, "STRIP_ROWS", 7)
+    assert np.array_equal(_split(height), whole)
+
+
+def test_components_by_height_are_those_of_the_whole_grid_graph(monkeypatch):
+    """split_by_height window by window: the connected components of the graph of
+    4-neighbours within ``split`` of each other, numbered in raster order of their first cells."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    rng = np.random.default_rng(3)
+    height = np.round(rng.uniform(0.0, 6.0, (90, 70)), 0)
+    mask = rng.uniform(size=height.shape) < 0.7
+    rows, cols = np.nonzero(mask)
+    index = np.full(height.shape, -1)
+    index[rows, cols] = np.arange(len(rows))
+    edges = []
+    for dr, dc in ((0, 1), (1, 0)):
+        a = mask[: mask.shape[0] - dr, : mask.shape[1] - dc] & mask[dr:, dc:]
+        a &= np.abs(height[: mask.shape[0] - dr, : mask.shape[1] - dc] - height[dr:, dc:]) <= 1.0
+        r, c = np.nonzero(a)
+        edges.append(np.column_stack([index[r, c], index[r + dr, c + dc]]))
+    e = np.concatenate(edges)
+    n, comp = csgraph.connected_components(sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])),
+                                                             shape=(len(rows), len(rows))), directed=False)
+    expected = np.zeros(height.shape, np.int32)
+    expected[rows, cols] = comp + 1
+    monkeypatch.setattr(detect, "SPLIT_WINDOW", 8)
+    labels, count = detect.split_by_height(height, mask, 1.0)
+    assert count == n
+    assert np.array_equal(labels, expected)
+
+
+def test_roughness_by_strips_is_that_of_the_whole_grid(monkeypatch):
+    """The 3 x 3 plane-fit roughness, strip by strip, has the whole grid's bits."""
+    z = np.random.default_rng(5).normal(10.0, 2.0, (53, 41)).astype(np.float32)
+    whole = detect._strip_roughness(z)
+    monkeypatch.setattr(detect, "STRIP_ROWS", 5)
+    assert np.array_equal(detect._roughness(z), whole)

@@ -135,7 +135,21 @@ def building_evidence(ndsm: Raster, vegetation: np.ndarray, config: BuildingsCon
 
 
 def _roughness(height: np.ndarray) -> np.ndarray:
-    """(rows, cols) RMS of the 3 x 3 neighbourhood about its least-squares plane."""
+    """(rows, cols) RMS of the 3 x 3 neighbourhood about its least-squares plane.
+
+    Computed :data:`STRIP_ROWS` rows at a time, with a row of neighbours above and
+    below: its float64 temporaries are a strip's, not the area's."""
+    rows = height.shape[0]
+    out = np.empty(height.shape, np.float64)
+    for start in range(0, rows, STRIP_ROWS):
+        stop = min(start + STRIP_ROWS, rows)
+        lo, hi = max(start - 1, 0), min(stop + 1, rows)
+        out[start:stop] = _strip_roughness(height[lo:hi])[start - lo : stop - lo]
+    return out
+
+
+def _strip_roughness(height: np.ndarray) -> np.ndarray:
+    """:func:`_roughness` of a strip (its first and last rows see only the strip)."""
     z = np.nan_to_num(height.astype(np.float64))
     k = np.ones((3, 3)) / 9.0
     kx = np.array([[-1, 0, 1]] * 3, np.float64)
@@ -163,20 +177,43 @@ def split_by_height(height: np.ndarray, mask: np.ndarray, split: float) -> tuple
         1..n per component, 0 outside ``mask``.
     n : int
     """
-    rows, cols = mask.shape
-    ids = np.flatnonzero(mask.ravel())
     if split <= 0:
         labels, n = ndimage.label(mask)
         return labels.astype(np.int32), n
+    # each component lies inside one blob of the mask: split the blobs a window at a
+    # time, then number the components in the order of their first cells, as one
+    # labelling of the whole grid would
+    blobs, n = ndimage.label(mask)
+    labels = np.zeros(mask.shape, np.int32)
+    firsts = []
+    for window, ids in _windows(blobs, SPLIT_WINDOW, margin=0):
+        mine = np.zeros(n + 1, bool)
+        mine[ids] = True
+        here = mine[blobs[window]]
+        components, first = _height_components(np.asarray(height)[window], here, split)
+        rows, cols = np.divmod(first, here.shape[1])
+        labels[window][here] = components[here] + sum(len(f) for f in firsts)
+        firsts.append((window[0].start + rows) * mask.shape[1] + window[1].start + cols)
+    if not firsts:
+        return labels, 0
+    firsts = np.concatenate(firsts)
+    rank = np.zeros(len(firsts) + 1, np.int32)
+    rank[1:][np.argsort(firsts)] = np.arange(1, len(firsts) + 1)
+    return rank[labels], len(firsts)
+
+
+def _height_components(height: np.ndarray, mask: np.ndarray, split: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`split_by_height` of a window: (rows, cols) int32 components 1..k, and
+    (k,) the flat index of each one's first cell."""
+    rows, cols = mask.shape
+    ids = np.flatnonzero(mask.ravel())
     h = np.nan_to_num(height.astype(np.float64))
     pairs = []
-    for a, b in (
-        (np.s_[:, :-1], np.s_[:, 1:]),
-        (np.s_[:-1, :], np.s_[1:, :]),
-    ):
+    for a, b, step in ((np.s_[:, :-1], np.s_[:, 1:], 1), (np.s_[:-1, :], np.s_[1:, :], cols)):
         both = mask[a] & mask[b] & (np.abs(h[a] - h[b]) <= split)
-        flat = np.arange(rows * cols).reshape(rows, cols)
-        pairs.append(np.column_stack([flat[a][both], flat[b][both]]))
+        r, c = np.nonzero(both)
+        first = r * cols + c
+        pairs.append(np.column_stack([first, first + step]))
     edges = np.concatenate(pairs)
     pos = np.full(rows * cols, -1, np.int64)
     pos[ids] = np.arange(len(ids))
@@ -184,7 +221,8 @@ def split_by_height(height: np.ndarray, mask: np.ndarray, split: float) -> tuple
     n, comp = csgraph.connected_components(g, directed=False)
     labels = np.zeros(rows * cols, np.int32)
     labels[ids] = comp + 1
-    return labels.reshape(rows, cols), n
+    _, first = np.unique(comp, return_index=True)
+    return labels.reshape(rows, cols), ids[first]
 
 
 def step_strength(height: np.ndarray, labels: np.ndarray, *, min_step: float) -> np.ndarray:
@@ -312,6 +350,13 @@ def split_at_steps(
       the rest: a tower, a superstructure). A failing piece joins the neighbour it
       shares the longest border with.
 
+    The steps, cores and rejoining are worked out a square of the grid at a time
+    (:data:`SPLIT_WINDOW`), each part from its own cells and their neighbours, so the
+    memory follows the square and the largest block, not the area; only the flood runs
+    once over the box of every part cut (scipy's watershed settles ties by the order it
+    meets the cells in, and one flood over that box keeps the cuts whatever the
+    windows).
+
     Parameters
     ----------
     height : (rows, cols) float
@@ -339,41 +384,27 @@ def split_at_steps(
     n : int
     """
     lab = np.asarray(labels).astype(np.int32)  # int32 labels: every whole-area copy below at half the memory
-    strength = step_strength(height, lab, min_step=min_step)
-    level = strength > 0  # cells of a step, which go with the side they are level with
-    if valley_drop is not None:
-        strength = np.maximum(strength, valley_depth(height, lab, reach=int(round(valley_reach / cell)),
-                                                         min_drop=valley_drop))
-    step = strength > 0
-    if not step.any():
+    if not lab.any():
         return _consecutive(lab)
-    edge = _piece_border(lab)
-    inner = (lab > 0) & (_distance(~edge) * cell > border)
-    core = inner & ~ndimage.binary_dilation(step, structure=np.ones((3, 3), bool))
-    cores, m = ndimage.label(core)
-    min_core = max(1, int(round(min_area / 4 / cell**2)))
-    sizes = np.bincount(cores.ravel(), minlength=m + 1)
-    cores = np.where(sizes[cores] >= min_core, cores, 0)
-    part_of = np.zeros(m + 1, np.int64)
-    part_of[cores.ravel()] = lab.ravel()
-    n_cores = np.bincount(part_of[np.unique(cores[cores > 0])], minlength=int(lab.max()) + 1)
-    split = n_cores >= 2
-    split[0] = False
-    if not split.any():
+    windows = _windows(lab, SPLIT_WINDOW, margin=WINDOW_MARGIN + int(round(valley_reach / cell)))
+    cores = _cores(height, lab, windows, cell, min_step=min_step, min_area=min_area, border=border,
+                   valley_drop=valley_drop, valley_reach=valley_reach)
+    if cores is None:
         return _consecutive(lab)
+    cut = cores.split[lab]
     # work in the box of the parts cut
-    where = split[lab]
-    (r0, c0), (r1, c1) = np.argwhere(where).min(axis=0), np.argwhere(where).max(axis=0) + 1
+    (r0, c0), (r1, c1) = np.argwhere(cut).min(axis=0), np.argwhere(cut).max(axis=0) + 1
     box = np.s_[max(r0 - 1, 0) : r1 + 1, max(c0 - 1, 0) : c1 + 1]
-    sub, cut = lab[box], where[box]
-    # the flood crosses steps last, and another part only at the highest cost
-    cost = np.clip(np.round(strength[box] * 100.0), 0, 65000).astype(np.uint16)
-    cost[_piece_border(sub, touching=True)] = 65534
-    cost[~cut] = 65535
-    markers = np.where(cut, cores[box], 0).astype(np.int32)
+    sub = lab[box]
+    # the flood crosses steps last (cores.cost), and another part only at the highest cost
+    cost = np.where(cut[box], cores.cost[box], np.uint16(65535))
+    markers = np.where(cut[box], cores.labels[box], 0).astype(np.int32)
+    cores.cost = cores.labels = None
     flooded = ndimage.watershed_ift(cost, markers)  # int32, as the markers
+    del cost, markers
     # cells of a part's rim taken by a neighbouring part's core take a neighbour's core of their own part
-    wrong = cut & (part_of[flooded] != sub)
+    part_of = cores.part_of
+    wrong = cut[box] & (part_of[flooded] != sub)
     for _ in range(4):
         if not wrong.any():
             break
@@ -381,25 +412,160 @@ def split_at_steps(
             take = wrong[here] & ~wrong[there] & (sub[there] == sub[here])
             flooded[here][take] = flooded[there][take]
             wrong[here][take] = False
-    # the flood splits a step anywhere between its two sides: a step cell goes with the
-    # neighbour it is level with (the wall stands between the two cells of a step edge)
-    hb = np.nan_to_num(np.asarray(height, np.float64)[box])
-    on_step = cut & level[box] & ~wrong
-    for _ in range(2):
-        best, choice = np.full(hb.shape, np.inf), flooded.copy()
-        for here, there in map(_neighbours, NEIGHBOURS):
-            dz = np.where((sub[there] == sub[here]) & ~wrong[there], np.abs(hb[here] - hb[there]), np.inf)
-            better = on_step[here] & (dz < best[here])
-            best[here][better], choice[here][better] = dz[better], flooded[there][better]
-        flooded = choice
     # pieces: a core's flood inside its part; parts not cut stay whole
-    offset = int(lab.max()) + 1
-    pieces = np.where(cut & ~wrong, flooded + offset, sub)
-    pieces = _join_pieces(pieces, sub, strength[box] > 0, inner[box], cell, min_area=min_area, min_width=min_width,
-                          max_shared=max_shared, min_evidence=min_evidence)
-    out = lab.copy()
-    out[box] = pieces
+    pieces = lab.copy() if int(lab.max()) + 1 + len(part_of) <= np.iinfo(np.int32).max else lab.astype(np.int64)
+    keep = cut[box] & ~wrong
+    pieces[box][keep] = flooded[keep] + (int(lab.max()) + 1)
+    blocked = np.zeros(lab.shape, bool)  # rim cells no core of their own part reached
+    blocked[box] = wrong
+    del flooded, wrong, keep
+    on_step = cut & cores.level & ~blocked
+    out = pieces.copy()
+    for window, ids in windows:  # the parts of one window, their cells and neighbours
+        mine = np.zeros(len(cores.split), bool)
+        mine[ids] = True
+        mine &= cores.split
+        if not mine.any():
+            continue
+        here = mine[lab[window]]
+        cells = _level_with(np.asarray(height)[window], lab[window], pieces[window], on_step[window] & here,
+                            blocked[window])
+        compact, numbers = _compact(cells)
+        cells = numbers[_join_pieces(compact, lab[window], cores.step[window], cores.inner[window], cell,
+                                     min_area=min_area, min_width=min_width, max_shared=max_shared,
+                                     min_evidence=min_evidence)]
+        out[window][here] = cells[here]
     return _consecutive(out)
+
+
+#: Side (cells) of the squares of the grid whose parts :func:`split_at_steps` handles
+#: together: its floating-point temporaries (tens of bytes a cell) follow the square
+#: and the largest block in it, not the area.
+SPLIT_WINDOW = 512
+
+
+#: Cells around a window's parts that its box also holds: the neighbours a part's
+#: steps and cores are judged by (the slope two cells behind a step, the valleys'
+#: reach on top of that), also for the cells of the next part.
+WINDOW_MARGIN = 4
+
+
+def _windows(labels: np.ndarray, size: int, *, margin: int) -> list[tuple[tuple[slice, slice], np.ndarray]]:
+    """(box, part ids) for each ``size`` square of the grid holding a part's top-left
+    cell: the box spans those parts and ``margin`` cells around them."""
+    objects = ndimage.find_objects(labels)
+    ids = np.array([i + 1 for i, o in enumerate(objects) if o is not None], np.int64)
+    if not len(ids):
+        return []
+    extent = np.array([(o[0].start, o[0].stop, o[1].start, o[1].stop) for o in objects if o is not None])
+    square = (extent[:, 0] // size) * (-(-labels.shape[1] // size)) + extent[:, 2] // size
+    order = np.argsort(square, kind="stable")
+    _, starts = np.unique(square[order], return_index=True)
+    out = []
+    for group in np.split(order, starts[1:]):
+        e = extent[group]
+        out.append(((slice(max(int(e[:, 0].min()) - margin, 0), int(e[:, 1].max()) + margin),
+                     slice(max(int(e[:, 2].min()) - margin, 0), int(e[:, 3].max()) + margin)), ids[group]))
+    return out
+
+
+@dataclass
+class _Cores:
+    """The grids :func:`split_at_steps` floods from, built a window at a time."""
+
+    labels: np.ndarray  # (rows, cols) int32: each core's number (1..m, in raster order of first cells), 0 elsewhere
+    part_of: np.ndarray  # (m + 1,) int64: the part of each core (0: none)
+    split: np.ndarray  # (parts + 1,) bool: parts with two cores or more
+    cost: np.ndarray  # (rows, cols) uint16: the flood's cost
+    level: np.ndarray  # (rows, cols) bool: cells of a height step
+    step: np.ndarray  # (rows, cols) bool: cells of a step or a valley
+    inner: np.ndarray  # (rows, cols) bool: cells more than ``border`` inside their part
+
+
+def _cores(height, lab, windows, cell, *, min_step, min_area, border, valley_drop, valley_reach) -> _Cores | None:
+    """Step strengths, flood costs and cores of every part, computed window by window
+    (each looks only at its part's cells and their neighbours), numbered as one
+    labelling of the whole grid would number them. None when no cell is on a step."""
+    shape = lab.shape
+    # at each core cell: 1 + the grid index of its core's first cell
+    first = np.zeros(shape, np.int32 if lab.size < np.iinfo(np.int32).max else np.int64)
+    cost = np.full(shape, 65535, np.uint16)
+    level, step, inner = (np.zeros(shape, bool) for _ in range(3))
+    starts, sizes, parts = [], [], []
+    min_core = max(1, int(round(min_area / 4 / cell**2)))
+    n = int(lab.max())
+    for window, ids in windows:
+        mine = np.zeros(n + 1, bool)
+        mine[ids] = True
+        sub = lab[window]
+        here = mine[sub]
+        h = np.asarray(height)[window]
+        strength = step_strength(h, sub, min_step=min_step)
+        level[window][here] = (strength > 0)[here]
+        if valley_drop is not None:
+            strength = np.maximum(strength, valley_depth(h, sub, reach=int(round(valley_reach / cell)),
+                                                             min_drop=valley_drop))
+        step[window][here] = (strength > 0)[here]
+        inside = (sub > 0) & (_distance(~_piece_border(sub)) * cell > border)
+        inner[window][here] = inside[here]
+        c = np.clip(np.round(strength * 100.0), 0, 65000).astype(np.uint16)
+        c[_piece_border(sub, touching=True)] = 65534
+        cost[window][here] = c[here]
+        core = inside & here & ~ndimage.binary_dilation(strength > 0, structure=np.ones((3, 3), bool))
+        numbers, m = ndimage.label(core)
+        if not m:
+            continue
+        found, index, count = np.unique(numbers.ravel(), return_index=True, return_counts=True)
+        rows, cols = np.divmod(index[1:], numbers.shape[1])
+        start = (window[0].start + rows) * shape[1] + window[1].start + cols
+        starts.append(start)
+        sizes.append(count[1:])
+        parts.append(sub.ravel()[index[1:]])
+        cell_start = np.zeros(m + 1, np.int64)
+        cell_start[found[1:]] = start + 1
+        first[window][core] = cell_start[numbers[core]]
+    if not step.any() or not starts:
+        return None
+    starts, sizes, parts = np.concatenate(starts), np.concatenate(sizes), np.concatenate(parts)
+    order = np.argsort(starts)  # the cores' numbers in one labelling of the grid
+    kept = np.zeros(len(starts) + 1, bool)
+    kept[1:] = sizes[order] >= min_core
+    part_of = np.zeros(len(starts) + 1, np.int64)
+    part_of[1:] = np.where(kept[1:], parts[order], 0)
+    labels = np.zeros(shape, np.int32)
+    at = first > 0
+    number = np.searchsorted(starts[order], first[at] - 1) + 1
+    labels[at] = np.where(kept[number], number, 0)
+    del first, at, number
+    split = np.bincount(part_of[kept], minlength=n + 1) >= 2
+    split[0] = False
+    if not split.any():
+        return None
+    return _Cores(labels, part_of, split, cost, level, step, inner)
+
+
+def _level_with(height: np.ndarray, parts: np.ndarray, pieces: np.ndarray, on_step: np.ndarray,
+                blocked: np.ndarray) -> np.ndarray:
+    """The pieces with each cell of a step (``on_step``) moved to the piece of the
+    4-neighbour of its part (not ``blocked``) it is most level with: the flood splits a
+    step anywhere between its two sides, the wall stands between the two cells of a
+    step edge."""
+    hb = np.nan_to_num(np.asarray(height, np.float64))
+    for _ in range(2):
+        best, choice = np.full(hb.shape, np.inf), pieces.copy()
+        for here, there in map(_neighbours, NEIGHBOURS):
+            dz = np.where((parts[there] == parts[here]) & ~blocked[there], np.abs(hb[here] - hb[there]), np.inf)
+            better = on_step[here] & (dz < best[here])
+            best[here][better], choice[here][better] = dz[better], pieces[there][better]
+        pieces = choice
+    return pieces
+
+
+def _compact(pieces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pieces numbered 0..k in the order of their numbers (``_join_pieces`` counts
+    by number), and the numbers, to map back."""
+    values, compact = np.unique(pieces, return_inverse=True)
+    return (compact.reshape(pieces.shape).astype(np.int32), values)
 
 
 #: The four neighbours of a cell, as (rows, cols) shifts, in the order they are tried.
@@ -452,7 +618,11 @@ def _piece_border(labels: np.ndarray, *, touching: bool = False) -> np.ndarray:
 
 
 def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_shared, min_evidence):
-    """Rejoin the pieces of a step cut that are no buildings (:func:`split_at_steps`)."""
+    """Rejoin the pieces of a step cut that are no buildings (:func:`split_at_steps`).
+
+    Each part is judged on its own (one whose cut no step explains rejoins across it
+    first, and only then are its small and thin pieces judged), so that the parts of a
+    window come out as they would alone."""
     for _ in range(20):
         ids, p = _unique_labels(pieces, np.int32)  # int32: half the memory of the whole-area grids
         n = len(ids)
@@ -481,13 +651,16 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
         s, d = key // n, key % n
         mapping = np.arange(n)
         weak = evidence < min_evidence
-        if weak.any():  # a cut with no step under most of it: join both sides
+        # each part on its own: one with a cut that no step explains rejoins across it first
+        joining = np.zeros(int(part_of.max()) + 1, bool)
+        joining[part_of[s[weak]]] = True
+        if weak.any():  # join both sides of such a cut
             g = sparse.coo_matrix((np.ones(int(weak.sum())), (s[weak], d[weak])), shape=(n, n))
             _, comp = csgraph.connected_components(g, directed=False)
             lowest = np.full(n, n)
             np.minimum.at(lowest, comp, np.arange(n))
             mapping = lowest[comp]
-        else:
+        if not joining[part_of[s]].all():
             shared = np.bincount(s, weights=count, minlength=n)
             dist = _distance(~_piece_border(p) & (p > 0))
             deepest = np.zeros(n)  # per piece (0 where it has no cell, as ndimage.maximum gives)
@@ -496,14 +669,12 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
             inner_share = np.bincount(p.ravel(), weights=inner.ravel(), minlength=n) / np.maximum(cells, 1)
             cut = np.zeros(n, bool)
             cut[s] = True
-            bad = cut & (
+            bad = cut & ~joining[part_of] & (
                 (cells * cell**2 < min_area)
                 | (width < min_width)
                 | (shared >= max_shared * np.maximum(perimeter, 1))
                 | (inner_share < 0.25)
             )
-            if not bad.any():
-                break
             # each failing piece joins the neighbour it shares the longest border with;
             # ties go to the larger neighbour; only the worst of two failing neighbours moves
             order = np.lexsort((-cells[d], -count, s))
