@@ -109,6 +109,23 @@ def test_bilinear_sampling_matches_scipy():
     assert np.isnan(near) and far == 1.0
 
 
+def test_sampling_keeps_the_shape_of_the_points():
+    """Scalars give a 0-d value, grids of points a grid of values, each equal to the
+    same point sampled in a flat array, whichever way of sampling."""
+    rng = np.random.default_rng(4)
+    raster = Raster(rng.normal(0.0, 5.0, (6, 7)), Affine(2.0, 0, 100.0, 0, -2.0, 50.0))
+    x, y = rng.uniform(98.0, 116.0, (3, 4)), rng.uniform(36.0, 52.0, (3, 4))
+    for bilinear in (True, False):
+        flat = raster.sample(x.ravel(), y.ravel(), bilinear=bilinear)
+        grid = raster.sample(x, y, bilinear=bilinear)
+        assert grid.shape == (3, 4)
+        assert grid.ravel().tobytes() == flat.tobytes()
+        one = raster.sample(float(x[1, 2]), float(y[1, 2]), bilinear=bilinear)
+        assert one.shape == () and (np.isnan(one) and np.isnan(grid[1, 2]) or one == grid[1, 2])
+        row = raster.sample(x[0], float(y[0, 0]), bilinear=bilinear)  # one y for a row of x
+        assert row.tobytes() == raster.sample(x[0], np.full(4, y[0, 0]), bilinear=bilinear).tobytes()
+
+
 def test_point_spacing_of_a_regular_grid_of_points():
     """Points every 0.5 m over an L-shaped area: the spacing is 0.5 m, the empty corner of
     the bounding box not counted."""

@@ -119,13 +119,15 @@ class Raster:
         return row - r0, col - c0
 
     def sample(self, x: np.ndarray, y: np.ndarray, *, bilinear: bool = True) -> np.ndarray:
-        """Values at world points, (n,) float64; NaN outside the grid or on nodata.
+        """Values at world points, float64 of the shape of ``x`` and ``y`` broadcast
+        ((n,) for (n,) arrays, 0-d for scalars); NaN outside the grid or on nodata.
 
         Bilinear interpolation between cell centres by default; a NaN neighbour
         makes the result NaN rather than biasing it.
         """
-        x = np.asarray(x, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
+        shape = np.broadcast_shapes(np.shape(x), np.shape(y))
+        x = np.broadcast_to(np.asarray(x, dtype=np.float64), shape).ravel()
+        y = np.broadcast_to(np.asarray(y, dtype=np.float64), shape).ravel()
         rows, cols = self.shape
         # the whole grid's fractional index, then the window's (subtracting an integer is exact)
         fc = (x - self.transform.c) / self.transform.a - 0.5 - self.origin[1]
@@ -135,7 +137,7 @@ class Raster:
             out = np.full(x.shape, np.nan)
             ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
             out[ok] = self.data[r[ok], c[ok]]
-            return out
+            return out.reshape(shape)
         np.clip(fr, 0, rows - 1, out=fr)
         np.clip(fc, 0, cols - 1, out=fc)
         r0 = np.minimum(np.floor(fr).astype(np.int64), max(rows - 2, 0))
@@ -158,7 +160,7 @@ class Raster:
             (x >= self.bounds[0]) & (x <= self.bounds[2]) & (y >= self.bounds[1]) & (y <= self.bounds[3])
         )
         out[~inside] = np.nan
-        return out
+        return out.reshape(shape)
 
 
 def _flat_cells(data: np.ndarray) -> tuple[int, np.ndarray]:
