@@ -949,10 +949,12 @@ def classify_vegetation(r: Run) -> None:
 
 
 #: Cells of the grid from which the idle workers stop before the building detection:
-#: its block split holds this process's largest grids (about 90 bytes a cell), which
-#: beyond 2 M cells (0.5 km2 at 0.5 m) outweigh two idle workers' memory, so the run's
-#: peak is lower without them; below, starting them again (about a second) costs more.
-#: The 64 x Delft survey (4.2 M cells, 2 workers): peak 0.97 -> 0.89 GB.
+#: it holds this process's largest grids (the nDSM, the evidence, the blobs and their
+#: labels: about 80 bytes a cell with the block split cut a window at a time, 120
+#: before), which beyond 2 M cells (0.5 km2 at 0.5 m) outweigh two idle workers'
+#: memory, so the run's peak is lower without them; below, starting them again (about
+#: a second) costs more. The 64 x Delft survey (4.2 M cells, 2 workers): peak 0.97 ->
+#: 0.89 GB; at 100 x (6.6 M cells) the workers hold 0.58 GB after the vegetation pass.
 STOP_WORKERS_CELLS = 2_000_000
 
 
