@@ -190,8 +190,8 @@ def test_gap_fill_reproduces_a_plane_under_building_sized_gaps():
 
 
 def test_gap_fill_is_the_same_in_small_batches(monkeypatch):
-    """The triangles are rasterised a batch of rows and cells at a time (memory bounded on
-    survey-sized grids): batches of a few rows give the same bytes as the default; a gap
+    """The triangles are rasterised a batch of triangles, rows and cells at a time (memory
+    bounded on survey-sized grids): batches of a few give the same bytes as the default; a gap
     of one cell takes the mean of its known neighbours."""
     rows, cols = np.indices((200, 160), dtype=np.float64)
     rng = np.random.default_rng(5)
@@ -206,6 +206,7 @@ def test_gap_fill_is_the_same_in_small_batches(monkeypatch):
     whole = dtm_stage.fill_gaps(values, known)
     monkeypatch.setattr(dtm_stage, "ROW_CHUNK", 7)
     monkeypatch.setattr(dtm_stage, "RASTER_CHUNK", 50)
+    monkeypatch.setattr(dtm_stage, "TRIANGLE_CHUNK", 13)
     assert np.array_equal(dtm_stage.fill_gaps(values, known), whole)
     assert np.isfinite(whole).all()
     ring = surface[99:102, 99:102].copy()

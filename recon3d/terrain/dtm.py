@@ -45,8 +45,10 @@ def fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     rim = known & ndimage.binary_dilation(gaps)  # 4-connected rim: fewer vertices, same planes
     r, c = np.nonzero(rim)
     triangles = _delaunay(r, c)
-    if len(triangles):
-        _rasterise_planes(out, gaps, np.column_stack([r, c])[triangles], out[r, c][triangles])
+    heights = out[r, c]
+    for start in range(0, len(triangles), TRIANGLE_CHUNK):  # in order: the last plane written wins
+        t = triangles[start:start + TRIANGLE_CHUNK]
+        _rasterise_planes(out, gaps, np.stack([r[t], c[t]], axis=-1), heights[t])
     return fill_nearest(out)
 
 
@@ -78,13 +80,13 @@ def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
     corners = subdiv.getTriangleList().reshape(-1, 3, 2)
     if not len(corners):
         return np.zeros((0, 3), np.int64)
-    index = np.full((rows, cols), -1, np.int64)
+    index = np.full((rows, cols), -1, np.int32 if len(r) < np.iinfo(np.int32).max else np.int64)
     index[r, c] = np.arange(len(r))
-    ij = np.rint(corners).astype(np.int64)
+    ij = np.rint(corners).astype(np.int32)  # helper vertices beyond int32 come out negative: outside
     inside = ((ij >= 0) & (ij < [rows, cols])).all(axis=(1, 2))
     ij = ij[inside]
     triangles = index[ij[..., 0], ij[..., 1]]
-    return triangles[(triangles >= 0).all(axis=1)]
+    return triangles[(triangles >= 0).all(axis=1)].astype(np.int64)
 
 
 def hilbert_order(r: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -108,6 +110,9 @@ def hilbert_order(r: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.argsort(key, kind="stable")
 
 
+#: Triangles whose corners and planes are worked out at a time (a dozen float64 values
+#: each), bounding memory: a survey's DTM has millions.
+TRIANGLE_CHUNK = 1 << 17
 #: Candidate cells rasterised at a time, bounding memory.
 RASTER_CHUNK = 1 << 20
 #: Triangle rows whose spans are computed at a time (a dozen float64 arrays each).
