@@ -249,7 +249,12 @@ class Run:
         return "satellite" if self.inputs.satellite_paths is not None else "frame"
 
     def tiles(self, name: str, func: Callable, args: list[tuple]) -> list[Path]:
-        """Run one pass over every tile (see :meth:`Executor.tiles`)."""
+        """Run one pass over every tile (see :meth:`Executor.tiles`).
+
+        The pages of the mapped grids this process read to cut the tiles' windows, and
+        the memory it freed, go back to the system first: the workers need it more."""
+        release_memory()
+        self.grids.release()
         g = self.grid
         local = isinstance(g.spec.store, MemoryStore) or len(g.tiles) == 1
         return self.executor.tiles(name, func, g.spec, g.tiles, args, progress=self.progress, local=local,
