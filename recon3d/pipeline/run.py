@@ -251,13 +251,20 @@ class Run:
     def tiles(self, name: str, func: Callable, args: list[tuple]) -> list[Path]:
         """Run one pass over every tile (see :meth:`Executor.tiles`).
 
-        The pages of the mapped grids this process read to cut the tiles' windows, and
-        the memory it freed, go back to the system first: the workers need it more."""
+        The memory this process freed goes back to the system first, and the pages of
+        the mapped grids it reads to send the tiles their windows go back after each
+        tile: the workers need the memory more."""
         release_memory()
         self.grids.release()
         g = self.grid
         local = isinstance(g.spec.store, MemoryStore) or len(g.tiles) == 1
-        return self.executor.tiles(name, func, g.spec, g.tiles, args, progress=self.progress, local=local,
+
+        def progress(message: str) -> None:
+            self.grids.release()
+            if self.progress is not None:
+                self.progress(message)
+
+        return self.executor.tiles(name, func, g.spec, g.tiles, args, progress=progress, local=local,
                                    sizes=g.points)
 
 
