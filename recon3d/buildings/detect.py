@@ -399,7 +399,7 @@ def split_at_steps(
     # the flood crosses steps last (cores.cost), and another part only at the highest cost
     cost = np.where(cut[box], cores.cost[box], np.uint16(65535))
     markers = np.where(cut[box], cores.labels[box], 0).astype(np.int32)
-    cores.cost = cores.labels = None
+    cores.cost = cores.labels = None  # let go of the whole-area copies before the flood's own memory
     flooded = ndimage.watershed_ift(cost, markers)  # int32, as the markers
     del cost, markers
     # cells of a part's rim taken by a neighbouring part's core take a neighbour's core of their own part
