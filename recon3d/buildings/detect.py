@@ -185,14 +185,13 @@ def split_by_height(height: np.ndarray, mask: np.ndarray, split: float) -> tuple
     # labelling of the whole grid would
     blobs, n = ndimage.label(mask)
     labels = np.zeros(mask.shape, np.int32)
-    firsts = []
+    firsts, count = [], 0
     for window, ids in _windows(blobs, SPLIT_WINDOW, margin=0):
-        mine = np.zeros(n + 1, bool)
-        mine[ids] = True
-        here = mine[blobs[window]]
+        here = _marked(ids, n)[blobs[window]]
         components, first = _height_components(np.asarray(height)[window], here, split)
         rows, cols = np.divmod(first, here.shape[1])
-        labels[window][here] = components[here] + sum(len(f) for f in firsts)
+        labels[window][here] = components[here] + count
+        count += len(first)
         firsts.append((window[0].start + rows) * mask.shape[1] + window[1].start + cols)
     if not firsts:
         return labels, 0
@@ -420,11 +419,10 @@ def split_at_steps(
     blocked[box] = wrong
     del flooded, wrong, keep
     on_step = cut & cores.level & ~blocked
-    out = pieces.copy()
-    for window, ids in windows:  # the parts of one window, their cells and neighbours
-        mine = np.zeros(len(cores.split), bool)
-        mine[ids] = True
-        mine &= cores.split
+    # each window rewrites its own parts' cells in place: the level pass and the
+    # rejoining read only the cells of the part they work on
+    for window, ids in windows:
+        mine = _marked(ids, len(cores.split) - 1) & cores.split
         if not mine.any():
             continue
         here = mine[lab[window]]
@@ -434,8 +432,8 @@ def split_at_steps(
         cells = numbers[_join_pieces(compact, lab[window], cores.step[window], cores.inner[window], cell,
                                      min_area=min_area, min_width=min_width, max_shared=max_shared,
                                      min_evidence=min_evidence)]
-        out[window][here] = cells[here]
-    return _consecutive(out)
+        pieces[window][here] = cells[here]
+    return _consecutive(pieces)
 
 
 #: Side (cells) of the squares of the grid whose parts :func:`split_at_steps` handles
@@ -469,6 +467,13 @@ def _windows(labels: np.ndarray, size: int, *, margin: int) -> list[tuple[tuple[
     return out
 
 
+def _marked(ids: np.ndarray, n: int) -> np.ndarray:
+    """(n + 1,) bool, True at the labels ``ids``: a lookup of a window's parts."""
+    out = np.zeros(n + 1, bool)
+    out[ids] = True
+    return out
+
+
 @dataclass
 class _Cores:
     """The grids :func:`split_at_steps` floods from, built a window at a time."""
@@ -495,10 +500,8 @@ def _cores(height, lab, windows, cell, *, min_step, min_area, border, valley_dro
     min_core = max(1, int(round(min_area / 4 / cell**2)))
     n = int(lab.max())
     for window, ids in windows:
-        mine = np.zeros(n + 1, bool)
-        mine[ids] = True
         sub = lab[window]
-        here = mine[sub]
+        here = _marked(ids, n)[sub]
         h = np.asarray(height)[window]
         strength = step_strength(h, sub, min_step=min_step)
         level[window][here] = (strength > 0)[here]

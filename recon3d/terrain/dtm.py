@@ -82,7 +82,9 @@ def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
         return np.zeros((0, 3), np.int64)
     index = np.full((rows, cols), -1, np.int32 if len(r) < np.iinfo(np.int32).max else np.int64)
     index[r, c] = np.arange(len(r))
-    ij = np.rint(corners).astype(np.int32)  # helper vertices beyond int32 come out negative: outside
+    # the helper vertices lie far outside: clipped to a cell beyond the grid, they fit int32
+    ij = np.rint(corners)
+    ij = np.clip(ij, -1, [rows, cols], out=ij).astype(np.int32)
     inside = ((ij >= 0) & (ij < [rows, cols])).all(axis=(1, 2))
     ij = ij[inside]
     triangles = index[ij[..., 0], ij[..., 1]]
