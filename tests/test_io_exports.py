@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import struct
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,7 @@ from shapely.geometry import Polygon, box
 from recon3d.core.city import Building, CityModel, Solid
 from recon3d.core.geo import LocalFrame
 from recon3d.io.cityjson import cityjson_dict, crs_url, quantisation_scale, write_cityjson
-from recon3d.io.gltf import GLTF_FROM_LOCAL, write_glb
+from recon3d.io.gltf import GLTF_FROM_LOCAL, write_glb, write_gltf
 from recon3d.io.obj import write_obj
 
 SCHEMA = (
@@ -296,6 +298,37 @@ def test_glb_is_y_up_local_float32(tmp_path):
         assert len(mesh.vertices) == len(expected)  # one vertex per position
         roof_first, roof_count = mesh.metadata["surface_types"]["RoofSurface"]
         assert (mesh.face_normals[roof_first : roof_first + roof_count, 1] > 0.99).all()  # roofs face +Y
+
+
+def test_glb_passes_the_gltf_validator_without_any_message(tmp_path):
+    path = tmp_path / "buildings.glb"
+    write_glb(make_city(crs="EPSG:7415"), path)
+    node = shutil.which("node")
+    tests = Path(__file__).parent
+    if node is None or not (tests.parent / "tools" / "node_modules" / "gltf-validator").exists():
+        pytest.skip("node or the gltf-validator package is missing (npm ci --prefix tools)")
+    done = subprocess.run([node, str(tests / "gltf_validate.mjs"), str(path)], capture_output=True, text=True,
+                          check=True, timeout=300)
+    report = json.loads(done.stdout)[0]
+    assert report["errors"] == report["warnings"] == report["infos"] == 0 and report["messages"] == [], report
+
+
+def test_gltf_json_holds_the_glb_scene(tmp_path):
+    city = make_city(crs="EPSG:7415")
+    write_glb(city, tmp_path / "b.glb")
+    write_gltf(city, tmp_path / "b.gltf")
+    doc = json.loads((tmp_path / "b.gltf").read_text(encoding="utf-8"))
+    assert doc["buffers"][0]["uri"].startswith("data:application/octet-stream;base64,")  # nothing beside the file
+    binary, text = trimesh.load(tmp_path / "b.glb"), trimesh.load(tmp_path / "b.gltf")
+    assert sorted(text.geometry) == sorted(binary.geometry) == ["cube", "ell", "yard"]
+    for name, mesh in binary.geometry.items():
+        np.testing.assert_array_equal(text.geometry[name].vertices, mesh.vertices)
+        np.testing.assert_array_equal(text.geometry[name].faces, mesh.faces)
+        assert text.geometry[name].metadata["surface_types"] == mesh.metadata["surface_types"]
+    assert text.metadata["recon3d"] == binary.metadata["recon3d"]
+    city.buildings = [city.buildings[-1]]  # only the failed building: an empty scene, still a glTF
+    write_gltf(city, tmp_path / "empty.gltf")
+    assert json.loads((tmp_path / "empty.gltf").read_text(encoding="utf-8"))["scenes"][0]["nodes"] == []
 
 
 # --------------------------------------------------------------------------- OBJ

@@ -34,15 +34,15 @@ trimesh's ``merge_vertices`` does, to get the solid back).
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import struct
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
-from recon3d.core.city import CityModel, Solid
+from recon3d.core.city import CityModel
 from recon3d.core.geo import crs_name, uncoded_wkt
 from recon3d.io import atomic_path
 from recon3d.io.glb import Binary, accessor, glb, index_accessor
@@ -71,28 +71,28 @@ def write_glb(city: CityModel, path: str | Path) -> None:
 
     Buildings without any solid are skipped (they are listed in the CityJSON file).
     """
-    scene = build_scene(city)
-    if scene.geometry:
-        data = scene.export(file_type="glb")
-    else:  # trimesh refuses empty scenes; a glTF without nodes is still valid
-        log.warning("no building has a solid: %s holds an empty scene", path)
-        data = _empty_glb(scene.metadata)
+    doc, data = plain_document(city)
     with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    log.info("wrote %d building nodes to %s", len(scene.geometry), path)
+        tmp.write_bytes(glb(doc, data) if doc["nodes"] else _empty_glb(doc["scenes"][0]["extras"]))
+    _log_written(doc, path)
 
 
 def write_gltf(city: CityModel, path: str | Path) -> None:
     """Write the scene of :func:`write_glb` as one JSON glTF file, its buffer embedded (atomic)."""
-    scene = build_scene(city)
-    if scene.geometry:
-        data = scene.export(file_type="gltf", embed_buffers=True)["model.gltf"]
+    doc, data = plain_document(city)
+    if doc["nodes"]:
+        doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(data).decode("ascii")
     else:
-        log.warning("no building has a solid: %s holds an empty scene", path)
-        data = json.dumps(_empty_document(scene.metadata), separators=(",", ":")).encode("utf-8")
+        doc = _empty_document(doc["scenes"][0]["extras"])
     with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    log.info("wrote %d building nodes to %s", len(scene.geometry), path)
+        tmp.write_bytes(json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode("utf-8"))
+    _log_written(doc, path)
+
+
+def _log_written(doc: dict, path) -> None:
+    if not doc.get("nodes"):
+        log.warning("no building has a solid: %s holds an empty scene", path)
+    log.info("wrote %d building nodes to %s", len(doc.get("nodes", [])), path)
 
 
 def _empty_document(extras: dict) -> dict:
@@ -112,20 +112,43 @@ def _empty_glb(extras: dict) -> bytes:
     return header + struct.pack("<II", len(chunk), 0x4E4F534A) + chunk
 
 
-def build_scene(city: CityModel) -> trimesh.Scene:
-    """The :class:`trimesh.Scene` :func:`write_glb` exports (one node per building)."""
-    scene = trimesh.Scene()
+def plain_document(city: CityModel) -> tuple[dict, bytes]:
+    """The glTF document :func:`write_glb` writes (one node per building with a solid,
+    one matte material) and its binary buffer.
+
+    Returns
+    -------
+    doc : dict
+        The glTF JSON; ``buffers[0]`` has no ``uri`` (the GLB's own chunk).
+    data : bytes
+        The buffer: per building, float32 (n, 3) positions then uint32 (m, 3) triangles.
+    """
+    binary = Binary()
+    accessors, meshes, nodes = [], [], []
     for building in city.buildings:
         lod = highest_lod(building)
         if lod is None:
             continue
-        mesh, ranges = _building_mesh(building.solids[lod])
+        vertices, faces, surface = building.solids[lod].mesh()
+        order, ranges = surface_order(building.solids[lod], surface)
         extras = _building_extras(building, lod)
-        mesh.metadata.update(extras, surface_types=ranges)
-        name = str(building.id)
-        scene.add_geometry(mesh, node_name=name, geom_name=name, metadata=extras)
-    scene.metadata.update(build_scene_extras(city))
-    return scene
+        accessors.append(accessor((vertices @ GLTF_FROM_LOCAL.T).astype(np.float32), binary, "VEC3", bounds=True))
+        accessors.append(index_accessor(faces[order], binary))
+        primitive = {"attributes": {"POSITION": len(accessors) - 2}, "indices": len(accessors) - 1, "mode": 4,
+                     "material": 0}
+        nodes.append({"name": str(building.id), "mesh": len(meshes), "extras": extras})
+        meshes.append({"name": str(building.id), "primitives": [primitive], "extras": {**extras, "surface_types": ranges}})
+    data = binary.padded()
+    doc = {
+        "asset": {"version": "2.0", "generator": "recon3d"},
+        "scene": 0,
+        "scenes": [{"nodes": list(range(len(nodes))), "extras": build_scene_extras(city)}],
+        "nodes": nodes, "meshes": meshes, "accessors": accessors,
+        "materials": [{"name": "building", "pbrMetallicRoughness": {
+            "baseColorFactor": _COLOUR, "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+        "bufferViews": binary.views, "buffers": [{"byteLength": len(data)}],
+    }
+    return doc, data
 
 
 def build_scene_extras(city: CityModel) -> dict:
@@ -140,26 +163,6 @@ def build_scene_extras(city: CityModel) -> dict:
     if uncoded_wkt(city.crs):  # a CRS without an EPSG code travels as its WKT
         info["crs_wkt"] = uncoded_wkt(city.crs)
     return {"recon3d": info}
-
-
-def _building_mesh(solid: Solid) -> tuple[trimesh.Trimesh, dict[str, list[int]]]:
-    """The solid's welded triangles in glTF axes, ordered by surface type.
-
-    Returns
-    -------
-    mesh : trimesh.Trimesh
-        (n, 3) float64 shared vertices and (m, 3) faces, with one matte PBR material.
-    ranges : dict of str to [int, int]
-        First triangle and triangle count per semantic surface type, in file order.
-    """
-    vertices, faces, surface = solid.mesh()
-    order, ranges = surface_order(solid, surface)
-    material = trimesh.visual.material.PBRMaterial(
-        name="building", baseColorFactor=_COLOUR, metallicFactor=0.0, roughnessFactor=1.0
-    )
-    mesh = trimesh.Trimesh(vertices @ GLTF_FROM_LOCAL.T, faces[order], process=False)
-    mesh.visual = trimesh.visual.TextureVisuals(material=material)
-    return mesh, ranges
 
 
 def write_textured_glb(city: CityModel, model, path: str | Path) -> None:

@@ -121,11 +121,13 @@ def _num(v: float) -> float | None:
 def run_record(r: Run) -> dict:
     """run.json: inputs, the resolved configuration, every automatic choice and why,
     notes, warnings, versions and timings."""
-    import laspy
-    import rasterio
-    import scipy
-    import shapely
-    import trimesh
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str:  # the installed release, without importing it
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "?"
 
     i, s = r.inputs, r.source
     kind = r.inputs.kind
@@ -156,7 +158,7 @@ def run_record(r: Run) -> dict:
         "local_frame_origin": list(r.city.frame.origin),
         "notes": r.notes,
         "warnings": r.warnings,
-        "versions": {m.__name__: getattr(m, "__version__", "?") for m in (np, scipy, laspy, rasterio, shapely, trimesh)},
+        "versions": {name: installed(name) for name in ("numpy", "scipy", "laspy", "rasterio", "shapely", "trimesh")},
         "timings_s": r.timings,
     }
 
