@@ -6,7 +6,11 @@ included). Both DSMs are compared with the truth inside the area two images see,
 height anywhere between the lowest and highest truth surface within the cell counting
 as exact (:func:`recon3d.synthetic.score.truth_range`), and the squared error is split
 by kind of place: roof interiors (more than 1 m inside an outline), the band of +-1 m
-around outlines (inside and outside the footprint), tree crowns and open ground.
+around outlines (inside and outside the footprint), tree crowns and open ground. A
+second table splits it by what the data holds at each cell: whether two cameras see
+its top surface unhidden (so stereo can measure it), whether a matched point fell in
+it or it was filled, and, for filled cells two cameras see, how steep the true
+surface is there (roof faces foreshortened in one view are the usual unmatched ones).
 
     .venv/bin/python scripts/stereo_error_budget.py [--scene DIR | --seed 0 | --survey nadir_pair --width 800]
 
@@ -35,7 +39,7 @@ from recon3d.synthetic import write_scene
 from recon3d.synthetic.city import truth_disparity
 from recon3d.synthetic.family import CONFIGURATIONS
 from recon3d.synthetic.scene import scene_city, write_block_scene
-from recon3d.synthetic.score import _on_grid, tolerant_error
+from recon3d.synthetic.score import _on_grid, tolerant_error, truth_range, visible_cells
 
 
 def main() -> None:
@@ -56,14 +60,17 @@ def main() -> None:
                 write_scene(scene, seed=args.seed)
         city = scene_city(scene)
         places = _places(scene)
-        rows = {}
+        rows, evidence = {}, {}
         for name, perfect in (("matcher", False), ("perfect disparities", True)):
             out = Path(tmp) / name.replace(" ", "_")
             with _perfect_matcher(scene, city) if perfect else contextlib.nullcontext():
                 state = run(scene, out)
             common = _on_grid(read_raster(scene / "truth" / "views.tif"), state.dsm) >= 2
             rows[name] = _budget(state.dsm, city, common, places(state.dsm))
-    _print(rows)
+            evidence[name] = _budget(state.dsm, city, common, _evidence(scene, city, state, common))
+    _print(rows, "DSM - truth (tolerant)")
+    print()
+    _print(evidence, "by evidence")
 
 
 def _perfect_matcher(scene: Path, city):
@@ -112,6 +119,35 @@ def _places(scene: Path):
     return masks
 
 
+#: Slopes (degrees) splitting the filled cells two cameras see: flat ground and roofs,
+#: roof faces, and steeper (walls crossing the cell).
+SLOPES = (20.0, 50.0)
+
+
+def _evidence(scene: Path, city, state, common: np.ndarray) -> dict[str, np.ndarray]:
+    """(rows, cols) bool masks of the DSM cells by what the run had there: two views of
+    the top surface or one, a matched point or a filled value (and, for filled cells
+    both see, the true surface's slope)."""
+    dsm = state.dsm
+    matched = ~state.dsm_filled & np.isfinite(dsm.data)
+    if state.dsm_unobserved is not None:
+        matched &= ~state.dsm_unobserved
+    both = visible_cells(scene, city, dsm, common)
+    _, top = truth_range(city, dsm, common, samples=1)
+    gy, gx = np.gradient(np.nan_to_num(top, nan=float(np.nanmedian(top))), dsm.resolution)
+    slope = np.degrees(np.arctan(np.hypot(gx, gy)))
+    flat, steep = slope < SLOPES[0], slope >= SLOPES[1]
+    seen_filled = both & ~matched
+    return {
+        "two views, matched": both & matched,
+        f"two views, filled, < {SLOPES[0]:g} deg": seen_filled & flat,
+        f"two views, filled, {SLOPES[0]:g}-{SLOPES[1]:g} deg": seen_filled & ~flat & ~steep,
+        f"two views, filled, >= {SLOPES[1]:g} deg": seen_filled & steep,
+        "one view, matched": ~both & matched,
+        "one view, filled": ~both & ~matched,
+    }
+
+
 def _budget(dsm, city, common, places: dict[str, np.ndarray]) -> dict:
     error = tolerant_error(city, dsm, common)
     valid = np.isfinite(error)
@@ -123,12 +159,12 @@ def _budget(dsm, city, common, places: dict[str, np.ndarray]) -> dict:
     return out
 
 
-def _print(rows: dict) -> None:
+def _print(rows: dict, title: str) -> None:
     names = list(rows)
-    print(f"{'DSM - truth (tolerant)':24s}" + "".join(f"{n:>34s}" for n in names))
-    print(f"{'':24s}" + "".join(f"{'cells':>10s}{'RMS (m)':>10s}{'% of MSE':>14s}" for _ in names))
+    print(f"{title:34s}" + "".join(f"{n:>34s}" for n in names))
+    print(f"{'':34s}" + "".join(f"{'cells':>10s}{'RMS (m)':>10s}{'% of MSE':>14s}" for _ in names))
     for place in rows[names[0]]:
-        line = f"{place:24s}"
+        line = f"{place:34s}"
         for n in names:
             cells, rms, share = rows[n][place]
             line += f"{cells:10d}{rms:10.2f}{share:14.1f}"

@@ -35,7 +35,7 @@ from recon3d.core.raster import Raster
 from recon3d.io.geotiff import read_raster
 from recon3d.synthetic.city import SyntheticCity
 
-__all__ = ["scene_cameras", "score_stereo", "tolerant_error", "truth_range"]
+__all__ = ["scene_cameras", "score_stereo", "tolerant_error", "truth_range", "visible_cells"]
 
 
 def truth_range(city: SyntheticCity, grid: Raster, cells: np.ndarray, samples: int = 5) -> tuple[np.ndarray, np.ndarray]:
@@ -150,18 +150,26 @@ def score_stereo(
 
 def _visible_share(scene, city: SyntheticCity, grid: Raster, common: np.ndarray) -> float:
     """Percent of the common cells whose top surface at least two cameras see unhidden."""
+    return _pct(visible_cells(scene, city, grid, common)[common])
+
+
+def visible_cells(scene, city: SyntheticCity, grid: Raster, cells: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: the ``cells`` whose top surface (at the cell centre) at least
+    two cameras of the scene see unhidden, so that stereo can measure it."""
     from recon3d.synthetic.render import visible
 
     cameras = scene_cameras(scene, city)
-    rows, cols = np.nonzero(common)
-    lo, hi = truth_range(city, grid, common, samples=1)  # the cell centre's surface
+    rows, cols = np.nonzero(cells)
+    lo, hi = truth_range(city, grid, cells, samples=1)  # the cell centre's surface
     x, y = grid.cell_centers()
     local = np.column_stack([x[cols], y[rows], hi[rows, cols]]) - np.asarray(city.origin)
     count = np.zeros(len(local), int)
     for cam in cameras:
         # the COLMAP cameras are in model = local coordinates; visible() wants the renderer's convention
         count += visible(city, cam, local, tol=0.05)
-    return _pct(count >= 2)
+    out = np.zeros(grid.shape, bool)
+    out[rows, cols] = count >= 2
+    return out
 
 
 def scene_cameras(scene: str | Path, city: SyntheticCity) -> list:
