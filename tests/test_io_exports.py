@@ -380,3 +380,15 @@ def test_glb_and_obj_without_any_solid(tmp_path):
     write_obj(city, tmp_path / "empty.obj")
     assert "o " not in (tmp_path / "empty.obj").read_text(encoding="utf-8")
     assert (tmp_path / "empty.mtl").exists()
+
+
+def test_cityjson_vertex_deduplication_matches_numpys_row_unique():
+    from recon3d.io.cityjson import _unique_rows
+
+    rng = np.random.default_rng(3)
+    q = rng.integers(-50, 50, (5000, 3))  # many repeats
+    huge = q * np.int64(2**40)  # a span no single int64 key holds: the row-wise path
+    for rows in (q, huge):
+        got, want = _unique_rows(rows), np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a.reshape(-1), b.reshape(-1))

@@ -207,13 +207,26 @@ def _quantise(
     if not vertex_sets:
         return np.zeros((0, 3), np.int64), []
     q = np.rint(np.concatenate(vertex_sets) / scale).astype(np.int64)
-    uniq, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
+    uniq, first, inverse = _unique_rows(q)
     order = np.argsort(first, kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
     index = rank[inverse.reshape(-1)]
     ends = np.cumsum([len(v) for v in vertex_sets])[:-1]
     return uniq[order], np.split(index, ends)
+
+
+def _unique_rows(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.unique(q, axis=0, return_index=True, return_inverse=True)`` of (n, 3) int64
+    rows, the same arrays, through one int64 key per row where the rows' span allows:
+    ``axis=0`` sorts rows as structured records, several times slower on a city."""
+    lo = q.min(axis=0)
+    span = q.max(axis=0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        return np.unique(q, axis=0, return_index=True, return_inverse=True)
+    key = ((q[:, 0] - lo[0]) * span[1] + (q[:, 1] - lo[1])) * span[2] + (q[:, 2] - lo[2])  # row order kept
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return q[first], first, inverse
 
 
 def _solid_geometry(solid: Solid, lod: str, remap: np.ndarray) -> dict | None:

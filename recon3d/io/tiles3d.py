@@ -224,19 +224,20 @@ class _Item:
         return float(np.linalg.norm(self.hi - self.lo))
 
 
-def _world_corners(city: CityModel, building: Building, lod: str) -> tuple[np.ndarray, np.ndarray]:
-    """(3 m, 3) world corners of the building's triangles and their (3 m, 4) uint8 colours.
+def _world_corners(city: CityModel, building: Building, lod: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The building's world vertices (n, 3), the (3 m,) vertex of each corner of its
+    triangles, and the corners' (3 m, 4) uint8 colours.
 
     The triangles are the solid's closed mesh (:meth:`~recon3d.core.city.Solid.mesh`),
-    one vertex per corner so each surface type keeps its colour (:data:`MATERIALS`).
+    one corner per triangle vertex so each surface type keeps its colour (:data:`MATERIALS`).
     """
     solid = building.solids[lod]
     vertices, faces, surface = solid.mesh()
     grey = (0.7, 0.7, 0.7)
     rgb = np.array([MATERIALS.get(k, (None, grey))[1] for k in solid.semantics] or [grey])[surface]
     rgba = np.column_stack([np.rint(rgb * 255), np.full(len(rgb), 255)]).astype(np.uint8)
-    local = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64).reshape(-1)]
-    return city.frame.to_world(local), np.repeat(rgba, 3, axis=0)
+    world = city.frame.to_world(np.asarray(vertices, dtype=np.float64))
+    return world, np.asarray(faces, dtype=np.int64).reshape(-1), np.repeat(rgba, 3, axis=0)
 
 
 def _properties(building: Building, lod: str) -> dict:
@@ -253,20 +254,24 @@ def _items(city: CityModel) -> tuple[list[_Item], np.ndarray]:
     for b in city.buildings:
         lod = highest_lod(b)
         part = _world_corners(city, b, lod) if lod is not None else None
-        if part is not None and len(part[0]):  # a solid without triangles shows nothing
+        if part is not None and len(part[1]):  # a solid without triangles shows nothing
             picked.append((b, lod))
             parts.append(part)
-    world = np.concatenate([w for w, _ in parts]) if parts else _fallback_points(city)
+    # each vertex is brought to the globe once (PROJ is the cost), then handed to its corners
+    starts = np.cumsum([0] + [len(w) for w, _, _ in parts])
+    corners = np.concatenate([index + start for (_, index, _), start in zip(parts, starts, strict=False)]) if parts else None
+    vertices = np.concatenate([w for w, _, _ in parts]) if parts else _fallback_points(city)
+    world = vertices[corners] if parts else vertices
     lo, hi = world.min(axis=0), world.max(axis=0)
     centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
     frame = enu_frame(to_ecef(centre[None], city.crs)[0])
     if not parts:
         return [], frame
-    enu = (to_ecef(world, city.crs) - frame[:3, 3]) @ frame[:3, :3]  # rows: M.T @ (p - t)
-    splits = np.cumsum([len(w) for w, _ in parts])[:-1]
+    enu = (to_ecef(vertices, city.crs)[corners] - frame[:3, 3]) @ frame[:3, :3]  # rows: M.T @ (p - t)
+    splits = np.cumsum([len(index) for _, index, _ in parts])[:-1]
     items = [
-        _Item(corners, rgba, _properties(b, lod))
-        for corners, (_, rgba), (b, lod) in zip(np.split(enu, splits), parts, picked, strict=True)
+        _Item(corners_enu, rgba, _properties(b, lod))
+        for corners_enu, (_, _, rgba), (b, lod) in zip(np.split(enu, splits), parts, picked, strict=True)
     ]
     return items, frame
 
