@@ -234,3 +234,39 @@ def test_seamlines_run_around_the_buildings(ortho_run):
     views = ortho.frame_views(s.scene)
     plain = ortho.true_ortho(s.dsm, views, ortho.image_gsd(views, s.dsm), tolerance=0.5)
     assert _roofs_cut(plain.source, s.labels, k)[0] >= 0.25 * counted  # measured 6 of 9
+
+
+def test_ground_behind_a_wall_is_hidden_from_an_oblique_view():
+    """A 20 m box on flat ground seen from about 45 degrees off nadir, from the east:
+    the ground west of it, out to where the ray over its west roof edge lands (x = 2.2 m),
+    lies behind the box on the rays and must not count as seen (the grid has no cell on
+    a wall; only the z-buffer's wall points hide it); the roof, the ground east of the
+    box and the ground beyond that ray are seen."""
+    from affine import Affine
+
+    cell, ground, roof = 0.5, 100.0, 120.0
+    z = np.full((80, 120), ground)  # 60 x 40 m, x from 0, rows from y = 40 down
+    z[30:50, 50:70] = roof  # the box: x 25-35 m, y 15-25 m
+    surface = Raster(z, Affine(cell, 0.0, 0.0, 0.0, -cell, 40.0))
+    centre = np.array([30.0 + 200.0, 20.0, ground + 200.0])  # 45 degrees up, to the east
+    forward = (np.array([30.0, 20.0, ground]) - centre) / np.linalg.norm([200.0, 0.0, 200.0])
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    rotation = np.stack([right, np.cross(forward, right), forward])
+
+    def project(x, y, zz):
+        cam = (np.stack([np.ravel(x), np.ravel(y), np.ravel(zz)], axis=1) - centre) @ rotation.T
+        return ((2000.0 * cam[:, 0] / cam[:, 2] + 999.5).reshape(np.shape(x)),
+                (2000.0 * cam[:, 1] / cam[:, 2] + 999.5).reshape(np.shape(x)))
+
+    view = ortho.View("east", np.zeros((2000, 2000, 3), np.uint8), project)
+    gsd = ortho.image_gsd([view], surface)  # as the product's orthophoto grid is: a pixel a cell
+    grid, k, ((_, _, seen, _),) = ortho.looks_on(surface, [view], gsd=gsd, tolerance=0.5)
+    xs, ys = grid.cell_centers()
+    xx, yy = np.meshgrid(xs, ys)
+    across = (yy > 16.0) & (yy < 24.0)  # rows through the middle of the box
+    assert seen[across & (xx > 26.0) & (xx < 34.0)].all()  # the roof
+    assert seen[across & (xx > 36.0) & (xx < 55.0)].all()  # the ground in front of the east wall
+    behind = across & (xx > 3.0) & (xx < 24.5)  # the box's west wall stands at x = 25
+    assert not seen[behind].any(), seen[behind].mean()
+    assert seen[across & (xx < 1.5)].all()
