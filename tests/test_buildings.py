@@ -573,3 +573,13 @@ def test_refined_labels_are_the_same_whatever_the_strip(monkeypatch):
         refined.append(detect.refine_labels(labels, dtm, fine, dtm, BuildingsConfig(), Units())[0])
     assert (refined[-1] > 0).sum() > 1000
     assert np.array_equal(refined[0], refined[-1]) and np.array_equal(refined[1], refined[-1])
+
+
+def test_covered_shares_count_overlapping_others_once():
+    from shapely.geometry import box
+
+    from recon3d.quality.buildings import covered_shares
+
+    others = [box(0, 0, 5, 10), box(2, 0, 7, 10), box(20, 20, 30, 30)]  # the first two overlap
+    shares = covered_shares([box(0, 0, 10, 10), box(20, 20, 25, 25), box(100, 100, 101, 101)], others)
+    np.testing.assert_allclose(shares, [0.7, 1.0, 0.0])  # not 0.5 + 0.5 for the first

@@ -1366,9 +1366,14 @@ def rasterize_model(r: Run) -> None:
 
 def _touching(buildings: list[Building], box: tuple, *, margin: float = 0.0) -> list[Building]:
     """The buildings whose footprints reach into ``box`` (xmin, ymin, xmax, ymax) widened by ``margin``."""
+    if not buildings:
+        return []
+    import shapely
+
     x0, y0, x1, y1 = box
-    box = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
-    return [b for b in buildings if _overlaps(b.footprint.bounds, box)]
+    lo_x, lo_y, hi_x, hi_y = shapely.bounds([b.footprint for b in buildings]).T  # one call: tiles x buildings
+    reach = (lo_x <= x1 + margin) & (hi_x >= x0 - margin) & (lo_y <= y1 + margin) & (hi_y >= y0 - margin)
+    return [b for b, near in zip(buildings, reach, strict=True) if near]
 
 
 #: Height (m) below the highest surface on the same image ray still counted as seen in an orthophoto.
@@ -1592,10 +1597,6 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         buffer=g.buffers["reference"], crowns=None if r.evidence.crowns is None else r.evidence.crowns[rows, cols],
         sunk=None if r.terrain.sunk is None else r.terrain.sunk[rows, cols],
     )
-
-
-def _overlaps(a, b) -> bool:
-    return a[0] <= b[2] and a[2] >= b[0] and a[1] <= b[3] and a[3] >= b[1]
 
 
 def detect_changes(r: Run) -> None:
