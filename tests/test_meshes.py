@@ -394,3 +394,23 @@ def test_every_solid_of_a_run_meshes_closed(delft_run):
             assert manifold_status(mesh.vertices, mesh.faces) == "NoError", (b.id, lod)
             # surfaces up to 1 cm off their plane (val3dity's tolerance): volumes agree to 1e-3
             assert mesh.volume == pytest.approx(polygon_volume(solid), rel=1e-3), (b.id, lod)
+
+
+def test_a_solid_survives_pickling_with_its_rings_and_mesh():
+    """Solids travel to and from the worker processes pickled (rings packed into one array)."""
+    import pickle
+
+    from recon3d.buildings.extrude import lod1_solid
+
+    solid = lod1_solid(box(0, 0, 10, 5).difference(box(2, 2, 3, 3)), 0.0, 7.0, LocalFrame((0.0, 0.0, 0.0)))
+    mesh = solid.mesh()
+    back = pickle.loads(pickle.dumps(solid))
+    assert [len(s) for s in back.surfaces] == [len(s) for s in solid.surfaces]  # the courtyard's hole kept
+    for ours, theirs in zip(solid.surfaces, back.surfaces, strict=True):
+        for a, b in zip(ours, theirs, strict=True):
+            assert b.dtype == np.int64 and np.array_equal(a, b)
+    assert back.semantics == solid.semantics and back.kind == solid.kind
+    np.testing.assert_array_equal(back.vertices, solid.vertices)
+    for a, b in zip(mesh, back.mesh(), strict=True):  # the cached triangles travel too
+        np.testing.assert_array_equal(a, b)
+    assert pickle.loads(pickle.dumps(Solid(np.zeros((0, 3)), [], []))).surfaces == []

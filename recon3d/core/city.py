@@ -63,6 +63,26 @@ class Solid:
             self._mesh = solid_mesh(self.vertices, self.surfaces)
         return self._mesh
 
+    def __getstate__(self) -> dict:
+        """Pickled with its rings packed into one array: a city's solids hold tens of
+        thousands of small ring arrays, and pickling them one by one was most of the
+        cost of handing buildings to the worker processes."""
+        state = self.__dict__.copy()
+        rings = [ring for surface in self.surfaces for ring in surface]
+        state["surfaces"] = (
+            np.concatenate(rings) if rings else np.zeros(0, np.int64),
+            np.array([len(ring) for ring in rings], np.int64),
+            np.array([len(surface) for surface in self.surfaces], np.int64),
+        )
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        flat, ring_sizes, surface_sizes = state["surfaces"]
+        rings = np.split(flat, np.cumsum(ring_sizes)[:-1]) if len(ring_sizes) else []
+        ends = np.cumsum(surface_sizes)
+        state["surfaces"] = [rings[end - size:end] for size, end in zip(surface_sizes, ends, strict=True)]
+        self.__dict__.update(state)
+
     def to_trimesh(self) -> trimesh.Trimesh:
         """The triangles of :meth:`mesh` as a :class:`trimesh.Trimesh` (not processed).
 
