@@ -258,8 +258,8 @@ def _items(city: CityModel) -> tuple[list[_Item], np.ndarray]:
             picked.append((b, lod))
             parts.append(part)
     # each vertex is brought to the globe once (PROJ is the cost), then handed to its corners
-    starts = np.cumsum([0] + [len(w) for w, _, _ in parts])
-    corners = np.concatenate([index + start for (_, index, _), start in zip(parts, starts, strict=False)]) if parts else None
+    starts = np.cumsum([0] + [len(w) for w, _, _ in parts])[:-1]
+    corners = np.concatenate([index + start for (_, index, _), start in zip(parts, starts, strict=True)]) if parts else None
     vertices = np.concatenate([w for w, _, _ in parts]) if parts else _fallback_points(city)
     world = vertices[corners] if parts else vertices
     lo, hi = world.min(axis=0), world.max(axis=0)

@@ -214,12 +214,15 @@ def _look(view: View, x, y, z, tolerance: float) -> tuple[np.ndarray, np.ndarray
     on = finite & (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
     b = ZBUFFER_BIN_PX
     nb = (w // b + 1)
-    bins = (np.floor(np.where(on, row, 0) + 0.5).astype(np.int64) // b) * nb + \
-        np.floor(np.where(on, col, 0) + 0.5).astype(np.int64) // b
+
+    def bin_of(c, r):  # the z-buffer bin of pixel coordinates on the image
+        return (np.floor(r + 0.5).astype(np.int64) // b) * nb + np.floor(c + 0.5).astype(np.int64) // b
+
+    bins = bin_of(np.where(on, col, 0), np.where(on, row, 0))
     top = np.full((h // b + 1) * nb, -np.inf)
     np.maximum.at(top, bins[on], z[on])
-    wall_bins, wall_z = _wall_samples(view, x, y, z, col, row, tolerance)
-    np.maximum.at(top, (wall_bins[:, 0] // b) * nb + wall_bins[:, 1] // b, wall_z)
+    wall_col, wall_row, wall_z = _wall_samples(view, x, y, z, col, row, tolerance)
+    np.maximum.at(top, bin_of(wall_col, wall_row), wall_z)
     visible = on & (z >= top[bins] - tolerance - _slope_allowance(z, x, col, row))
     if view.image.dtype != np.uint8:  # no-data pixels of a satellite image see nothing
         r = np.clip(np.rint(np.nan_to_num(row)), 0, h - 1).astype(np.int64)
@@ -228,9 +231,9 @@ def _look(view: View, x, y, z, tolerance: float) -> tuple[np.ndarray, np.ndarray
     return col.astype(np.float32), row.astype(np.float32), visible, lean
 
 
-def _wall_samples(view: View, x, y, z, col, row, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points on the walls of the surface, for the z-buffer: (m, 2) int pixel (row, col)
-    on the image and (m,) heights.
+def _wall_samples(view: View, x, y, z, col, row, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points on the walls of the surface, for the z-buffer: (m,) float pixel columns
+    and rows on the image, and (m,) heights.
 
     A grid of heights has no cell on a wall, yet in an oblique view the wall hides the
     ground behind its building: without it, the ground cells whose rays cross the wall
@@ -239,16 +242,9 @@ def _wall_samples(view: View, x, y, z, col, row, tolerance: float) -> tuple[np.n
     is extended down to it by points every half a z-buffer bin along the wall's image.
     """
     h, w = view.image.shape[:2]
-    low = np.full(z.shape, np.inf)
-    for axis, shift in ((0, 1), (0, -1), (1, 1), (1, -1)):
-        neighbour = np.roll(z, shift, axis=axis)
-        edge = [slice(None)] * 2
-        edge[axis] = slice(0, 1) if shift == 1 else slice(-1, None)  # np.roll wraps around
-        neighbour[tuple(edge)] = np.nan
-        low = np.fmin(low, neighbour)
-    wall = np.isfinite(z) & np.isfinite(low) & (z - low > tolerance) & np.isfinite(col) & np.isfinite(row)
-    if not wall.any():
-        return np.zeros((0, 2), np.int64), np.zeros(0)
+    p = np.pad(z, 1, constant_values=np.nan)
+    low = np.fmin(np.fmin(p[:-2, 1:-1], p[2:, 1:-1]), np.fmin(p[1:-1, :-2], p[1:-1, 2:]))
+    wall = np.isfinite(z) & (z - low > tolerance) & np.isfinite(col) & np.isfinite(row)  # NaN compares False
     top_z, foot_z = z[wall], low[wall]
     c0, r0 = col[wall].astype(np.float64), row[wall].astype(np.float64)
     c1, r1 = (np.asarray(v, np.float64) for v in view.project(x[wall], y[wall], foot_z))
@@ -256,13 +252,12 @@ def _wall_samples(view: View, x, y, z, col, row, tolerance: float) -> tuple[np.n
     top_z, foot_z, c0, r0, c1, r1 = (v[ok] for v in (top_z, foot_z, c0, r0, c1, r1))
     steps = np.ceil(np.hypot(c1 - c0, r1 - r0) / (0.5 * ZBUFFER_BIN_PX)).astype(np.int64) + 1
     owner = np.repeat(np.arange(len(steps)), steps)
-    t = (np.arange(len(owner)) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps, steps)
-    # the foot itself stays out (t < 1): it is the neighbour's own cell
+    # from the top (t = 0) down to just above the foot, which is the neighbour's own cell
+    t = (np.arange(len(owner)) - (np.cumsum(steps) - steps)[owner]) / steps[owner]
     cs, rs = c0[owner] + t * (c1 - c0)[owner], r0[owner] + t * (r1 - r0)[owner]
     zs = top_z[owner] + t * (foot_z - top_z)[owner]
     inside = (cs >= -0.5) & (cs <= w - 0.5) & (rs >= -0.5) & (rs <= h - 0.5)
-    pixels = np.column_stack([np.floor(rs[inside] + 0.5), np.floor(cs[inside] + 0.5)]).astype(np.int64)
-    return pixels, zs[inside]
+    return cs[inside], rs[inside], zs[inside]
 
 
 def _slope_allowance(z: np.ndarray, x: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:

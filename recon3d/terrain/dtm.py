@@ -58,7 +58,8 @@ HULL_MARGIN = 1000
 
 
 def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(t, 3) int64 vertex indices of the Delaunay triangles of the integer points (r, c).
+    """(t, 3) vertex indices (int32 below 2**31 points, else int64) of the Delaunay
+    triangles of the integer points (r, c).
 
     OpenCV's incremental Delaunay (Subdiv2D) is used rather than Qhull: on grid points,
     cocircular by the thousand, Qhull spends seconds on degeneracies that the
@@ -88,7 +89,7 @@ def _delaunay(r: np.ndarray, c: np.ndarray) -> np.ndarray:
     inside = ((ij >= 0) & (ij < [rows, cols])).all(axis=(1, 2))
     ij = ij[inside]
     triangles = index[ij[..., 0], ij[..., 1]]
-    return triangles[(triangles >= 0).all(axis=1)].astype(np.int64)
+    return triangles[(triangles >= 0).all(axis=1)]
 
 
 def hilbert_order(r: np.ndarray, c: np.ndarray) -> np.ndarray:
