@@ -106,6 +106,19 @@ def test_dormer_does_not_split_its_house():
     assert min(_best_iou(houses, polygons)) >= 0.8
 
 
+@pytest.mark.parametrize("pitch", [30.0, 35.0])
+def test_gables_of_equal_houses_part_at_their_valleys(pitch):
+    """A terrace of equal houses, each its own gable across the row (no step at all):
+    the valleys between the gables cut it into its houses down to 30 degrees of pitch
+    (a 0.8 m rule kept every terrace under 39 degrees whole)."""
+    widths = [6.5, 7.0, 6.0, 7.5]
+    rise = np.tan(np.radians(pitch)) * min(widths) / 2
+    ndsm, houses = _row(widths, [7.0] * 4, rise, ridge="across")
+    polygons = _detect(ndsm)
+    assert len(polygons) == len(houses)
+    assert min(_best_iou(houses, polygons)) >= 0.8, _best_iou(houses, polygons)
+
+
 def test_row_of_equal_roofs_stays_one_building():
     """Nothing in the heights tells equal houses apart: the row stays one block."""
     for rise, ridge in ((0.0, "along"), (3.0, "along")):
@@ -173,7 +186,7 @@ def test_l_shaped_gable_house_stays_one_building(pitch):
     and not one cell of its valleys is taken for a cut (a 0.4 m rule took a dozen)."""
     ndsm, house = _l_house(pitch)
     labels = (ndsm.data > 2.5).astype(np.int32)
-    cut = detect.valley_depth(ndsm.data, labels, reach=round(1.0 / RES), min_drop=detect.VALLEY_DROP)
+    cut = detect.valley_depth(ndsm.data, labels, reach=round(detect.VALLEY_REACH / RES), min_drop=detect.VALLEY_DROP)
     assert not cut.any()
     (polygon,) = _detect(ndsm)
     assert _best_iou([house], [polygon])[0] >= 0.85
@@ -215,7 +228,7 @@ def _split(height: np.ndarray) -> np.ndarray:
     labels, _ = detect.split_by_height(height, height > 2.5, 2.0)
     cfg = BuildingsConfig()
     return detect.split_at_steps(height, labels, RES, min_step=cfg.split_step, min_area=cfg.min_area,
-                                 min_width=cfg.min_split_width, valley_drop=detect.VALLEY_DROP, valley_reach=1.0)[0]
+                                 min_width=cfg.min_split_width, valley_drop=detect.VALLEY_DROP, valley_reach=detect.VALLEY_REACH)[0]
 
 
 @pytest.mark.parametrize("window", [16, 50, 130])
@@ -265,3 +278,34 @@ def test_roughness_by_strips_is_that_of_the_whole_grid(monkeypatch):
     whole = detect._strip_roughness(z)
     monkeypatch.setattr(detect, "STRIP_ROWS", 5)
     assert np.array_equal(detect._roughness(z), whole)
+
+
+def test_cut_straightness_is_the_rms_off_the_best_line():
+    """A straight run of border edges is 0 off its line, at any angle; an L of two 10-cell
+    arms is about 2 cells off it (no party wall), a staircase of one-cell steps 0.35."""
+    t = np.arange(20.0)
+    line = np.c_[t, 0.5 * t + 3.0]
+    ell = np.r_[np.c_[np.zeros(10), np.arange(10.0)], np.c_[np.arange(1.0, 11.0), np.full(10, 9.0)]]
+    stairs = np.c_[np.repeat(np.arange(10.0), 2)[:19], np.repeat(np.arange(10.0), 2)[1:20]]
+    points = np.r_[line, ell, stairs]
+    group = np.repeat([0, 1, 2], [len(line), len(ell), len(stairs)])
+    off = detect._off_line(points, group, np.bincount(group))
+    assert off[0] == pytest.approx(0.0, abs=1e-9)
+    assert off[1] > 1.5
+    assert off[2] < 0.5
+
+
+def test_overlap_goes_to_the_part_whose_cells_lie_in_it():
+    """Two parts whose regularised outlines overlap along their shared wall: the overlap
+    is cut from the one with fewer of its own cells in it, the larger one included;
+    without cells the smaller one loses it, as before."""
+    transform = Affine(1.0, 0.0, 0.0, 0.0, -1.0, 20.0)
+    labels = np.zeros((20, 30), np.int32)
+    labels[2:18, 2:20] = 1  # the large part: columns 2-19
+    labels[2:18, 20:27] = 2  # the small one: columns 20-26
+    large, small = shapely.box(2, 2, 22, 18), shapely.box(20, 2, 27, 18)  # the large one reaches 2 m too far
+    out = detect._remove_overlaps([large, small], 1.0, owners=[1, 2], labels=labels, transform=transform)
+    assert {round(p.area) for p in out} == {16 * 18, 16 * 7}
+    assert not out[0].intersection(out[1]).area
+    plain = detect._remove_overlaps([large, small], 1.0)
+    assert {round(p.area) for p in plain} == {16 * 20, 16 * 5}

@@ -291,9 +291,13 @@ def valley_depth(height: np.ndarray, labels: np.ndarray, *, reach: int, min_drop
     """(rows, cols) float32: per cell, how far the roof rises on both sides of it, ``reach`` cells away.
 
     A valley between two roofs (gables side by side, each house its own) is a line of
-    cells lower than the cells on both sides of it, along a row or a column of the grid;
-    the smaller of the two rises is the depth, kept above ``min_drop`` (0 elsewhere).
-    Only cells of one part are compared.
+    cells lower than the cells on both sides of it, along a row or a column of the grid,
+    where the two roofs slope down towards each other: their slopes, ``reach`` cells
+    away on either side, point more than :data:`VALLEY_OPPOSITE` degrees apart. The
+    valleys of one house's roof, where two wings meet at right angles (an L, a T, a
+    cross gable), join slopes about 90 degrees apart and are no such line. The smaller
+    of the two rises is the depth, kept above ``min_drop`` (0 elsewhere). Only cells of
+    one part are compared.
 
     Parameters
     ----------
@@ -307,15 +311,51 @@ def valley_depth(height: np.ndarray, labels: np.ndarray, *, reach: int, min_drop
     lab = np.asarray(labels)
     k = max(1, int(reach))
     out = np.zeros(h.shape, np.float64)
-    for hh, ll, oo in ((h, lab, out), (h.T, lab.T, out.T)):
+    if min(h.shape) < 2:
+        return out.astype(np.float32)
+    slope = _part_slope(h, lab)
+    cos_max = np.cos(np.radians(VALLEY_OPPOSITE))
+    for hh, ll, oo, (g0, g1) in ((h, lab, out, slope), (h.T, lab.T, out.T, (slope[1].T, slope[0].T))):
         if hh.shape[1] <= 2 * k:
             continue
         c = np.s_[:, k:-k]
-        left, right = np.s_[:, : -2 * k], np.s_[:, 2 * k :]
-        same = (ll[c] > 0) & (ll[left] == ll[c]) & (ll[right] == ll[c])
-        rise = np.minimum(hh[left] - hh[c], hh[right] - hh[c])
-        oo[c] = np.maximum(oo[c], np.where(same & (rise > min_drop), rise, 0.0))
+        a, b = np.s_[:, : -2 * k], np.s_[:, 2 * k :]  # the cells reach before and after
+        same = (ll[c] > 0) & (ll[a] == ll[c]) & (ll[b] == ll[c])
+        rise = np.minimum(hh[a] - hh[c], hh[b] - hh[c])
+        dot = g0[a] * g0[b] + g1[a] * g1[b]
+        opposite = dot < cos_max * np.hypot(g0[a], g1[a]) * np.hypot(g0[b], g1[b])
+        oo[c] = np.maximum(oo[c], np.where(same & opposite & (rise > min_drop), rise, 0.0))
     return out.astype(np.float32)
+
+
+def _part_slope(h: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) float64 twice: the height's slope along the grid's columns (axis 0)
+    and rows (axis 1), from the neighbours of the cell's own part only (the mean of the
+    differences to both; the one of its part at a wall; 0 with neither). A slope taken
+    across a wall would point at the ground.
+
+    Parameters
+    ----------
+    h : (rows, cols) float64
+    lab : (rows, cols) int
+    """
+    slope = []
+    for axis in (0, 1):
+        d = np.diff(h, axis=axis)
+        same = np.diff(lab, axis=axis) == 0
+        d = np.where(same, d, 0.0)
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (1, 0)
+        before, n_before = np.pad(d, pad), np.pad(same, pad)
+        pad[axis] = (0, 1)
+        after, n_after = np.pad(d, pad), np.pad(same, pad)
+        slope.append((before + after) / np.maximum(n_before.astype(np.int8) + n_after, 1))
+    return slope[0], slope[1]
+
+
+#: Angle (degrees) between the slopes on both sides of a valley above which it parts
+#: two roofs (:func:`valley_depth`); a roof's own valleys join slopes about 90 degrees apart.
+VALLEY_OPPOSITE = 135.0
 
 
 def split_at_steps(
@@ -337,12 +377,14 @@ def split_at_steps(
     Step cells (:func:`step_strength`, widened by a cell to close gaps in the line) and
     a rim of ``border`` along the walls (where a step that fades out at the eaves
     still ends) leave cores: the connected regions left of a part. A part with two or
-    more cores is flooded from them, across the lowest steps first (a watershed of the
-    step strength), so the pieces meet on the step lines. A cut is kept only where it
-    is real; otherwise its pieces join again:
+    more cores is flooded from them, across the lowest steps first (scikit-image's
+    watershed of the step strength, inside the part), so the pieces meet on the step
+    lines. A cut is kept only where it is real; otherwise its pieces join again:
 
     * at least ``min_evidence`` of the border two pieces share lies on step cells (two
-      cores parted only by the rim, at a narrow waist, are one building);
+      cores parted only by the rim, at a narrow waist, are one building), and that
+      border runs straight (RMS off its line at most :data:`MAX_CUT_WIGGLE`: a party
+      wall, not a path between the dormers and chimneys of one roof);
     * each piece covers ``min_area`` (a dormer, a chimney stays with its roof), is at
       least ``min_width`` wide (an annex, the fringe of a wall) and shares less than
       ``max_shared`` of its border with the other pieces (a higher part enclosed by
@@ -352,9 +394,10 @@ def split_at_steps(
     The steps, cores and rejoining are worked out a square of the grid at a time
     (:data:`SPLIT_WINDOW`), each part from its own cells and their neighbours, so the
     memory follows the square and the largest block, not the area; only the flood runs
-    once over the box of every part cut (scipy's watershed settles ties by the order it
+    once over the box of every part cut (the watershed settles ties by the order it
     meets the cells in, and one flood over that box keeps the cuts whatever the
-    windows).
+    windows). scipy's ``watershed_ift`` is no substitute: on a 2-D plateau of equal
+    cost one marker floods the whole grid, across higher walls too.
 
     Parameters
     ----------
@@ -399,7 +442,9 @@ def split_at_steps(
     cost = np.where(cut[box], cores.cost[box], np.uint16(65535))
     markers = np.where(cut[box], cores.labels[box], 0).astype(np.int32)
     cores.cost = cores.labels = None  # let go of the whole-area copies before the flood's own memory
-    flooded = ndimage.watershed_ift(cost, markers)  # int32, as the markers
+    from skimage.segmentation import watershed  # here: its import is for the coordinator's detection only
+
+    flooded = watershed(cost, markers, mask=cut[box])  # int32, as the markers
     del cost, markers
     # cells of a part's rim taken by a neighbouring part's core take a neighbour's core of their own part
     part_of = cores.part_of
@@ -434,6 +479,11 @@ def split_at_steps(
                                      min_evidence=min_evidence)]
         pieces[window][here] = cells[here]
     return _consecutive(pieces)
+
+
+#: RMS distance (CRS units) of a cut between two pieces of a block from a straight line
+#: above which it is no party wall (:func:`split_at_steps`).
+MAX_CUT_WIGGLE = 1.0
 
 
 #: Side (cells) of the squares of the grid whose parts :func:`split_at_steps` handles
@@ -634,13 +684,15 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
         cells = np.bincount(p.ravel(), minlength=n)
         # the border of every piece (pairs of 4-neighbours in different pieces, kept
         # alone: a few percent of the cells), and the share it has with each other piece of its part
-        la, lb, on_step = [], [], []
-        for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
+        la, lb, on_step, at = [], [], [], []
+        for (a, b), half in zip(((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])), ((0.0, 0.5), (0.5, 0.0)),
+                                strict=True):
             diff = p[a] != p[b]
             la.append(p[a][diff].astype(np.int64))
             lb.append(p[b][diff].astype(np.int64))
             on_step.append(step[a][diff] | step[b][diff])
-        la, lb, on_step = np.concatenate(la), np.concatenate(lb), np.concatenate(on_step)
+            at.append(np.argwhere(diff) + half)  # the middle of each border edge (row, col)
+        la, lb, on_step, at = np.concatenate(la), np.concatenate(lb), np.concatenate(on_step), np.concatenate(at)
         perimeter = np.bincount(np.r_[la, lb], minlength=n).astype(np.float64)
         # the grid's edge is a border too
         for line in (p[0], p[-1], p[:, 0], p[:, -1]):
@@ -650,10 +702,12 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
         if not len(src):
             break
         key, count = np.unique(src * n + dst, return_counts=True)
-        evidence = np.bincount(np.searchsorted(key, src * n + dst), weights=ev, minlength=len(key)) / count
+        which = np.searchsorted(key, src * n + dst)
+        evidence = np.bincount(which, weights=ev, minlength=len(key)) / count
+        wiggle = _off_line(np.r_[at[pair], at[pair]], which, count) * cell
         s, d = key // n, key % n
         mapping = np.arange(n)
-        weak = evidence < min_evidence
+        weak = (evidence < min_evidence) | (wiggle > MAX_CUT_WIGGLE)
         # each part on its own: one with a cut that no step explains rejoins across it first
         joining = np.zeros(int(part_of.max()) + 1, bool)
         joining[part_of[s[weak]]] = True
@@ -696,6 +750,26 @@ def _join_pieces(pieces, parts, step, inner, cell, *, min_area, min_width, max_s
             break
         pieces = ids[mapping][p]
     return pieces
+
+
+def _off_line(points: np.ndarray, group: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(k,) RMS distance (cells) of each group's points from the straight line fitting
+    them best: the square root of the smaller eigenvalue of their covariance.
+
+    Parameters
+    ----------
+    points : (m, 2) float
+    group : (m,) int
+        0..k-1.
+    count : (k,) int
+        Points per group.
+    """
+    k = len(count)
+    mean = np.stack([np.bincount(group, weights=points[:, i], minlength=k) for i in (0, 1)], 1) / count[:, None]
+    d = points - mean[group]
+    sxx, syy, sxy = (np.bincount(group, weights=w, minlength=k) / count for w in (d[:, 0] ** 2, d[:, 1] ** 2, d[:, 0] * d[:, 1]))
+    smaller = (sxx + syy) / 2 - np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
+    return np.sqrt(np.maximum(smaller, 0.0))
 
 
 def _label_medians(values: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
@@ -794,11 +868,15 @@ class Blobs:
         return np.array([not r for r in self.reason], bool)
 
 
-#: Rise (m) of the roof within 1 m on both sides of a valley that makes it a cut between
-#: two houses (39 degrees): terraces with a gable per house meet in valleys, not steps.
-#: A gentler rule (0.4 m, 22 degrees) also cut L-shaped gable houses at their inner
-#: valley on real data (the Delft strip); split houses of gentler pitch need a step.
-VALLEY_DROP = 0.8
+#: Rise (m) of the roof within :data:`VALLEY_REACH` on both sides of a valley that makes
+#: it a cut between two houses (17 degrees): terraces with a gable per house meet in
+#: valleys, not steps. The inner valleys of L-shaped gable houses (the Delft strip has
+#: them) are told apart by the direction of their slopes (:data:`VALLEY_OPPOSITE`), not
+#: by a steeper rule (0.8 m within 1 m kept every terrace under 39 degrees whole).
+VALLEY_DROP = 0.45
+#: Distance (m) on both sides of a valley at which its rise is read: far enough that the
+#: cell nearest the valley line, up to half a cell off it, still sees most of the rise.
+VALLEY_REACH = 1.5
 #: Mean share of vegetation points above which a blob is a tree whatever its shape.
 VEGETATION_BLOB_SHARE = 0.3
 #: Mean share of vegetation points above which a rough blob is a tree; below it a rough
@@ -874,7 +952,7 @@ def find_blobs(
         labels, n = split_at_steps(
             ndsm.data, labels, res, min_step=units.height(config.split_step), min_area=units.area(config.min_area),
             min_width=units.length(config.min_split_width), valley_drop=units.height(VALLEY_DROP),
-            valley_reach=units.length(1.0),
+            valley_reach=units.length(VALLEY_REACH),
         )
     if n:
         labels, n = _consecutive(_merge_small(labels, n, min_cells))
@@ -1028,6 +1106,7 @@ def detect_buildings(
     if blobs is None:
         blobs = find_blobs(ndsm, vegetation, config, units, planar=planar, point_density=point_density)
     labels = np.where(np.r_[False, blobs.kept][blobs.labels], blobs.labels, 0)
+    coarse = labels
     transform, res = ndsm.transform, ndsm.resolution
     if fine is None and cloud is not None:
         fine = fine_surface(cloud, ndsm, point_vegetation)
@@ -1037,15 +1116,22 @@ def detect_buildings(
     min_area = units.area(config.min_area)
     min_edge = max(units.length(config.min_edge), 2 * res)
     extent = ndsm.bounds
-    jobs = []
+    # blocks: touching kept blobs, found on the DSM grid (a whole-area labelling of the finer grid costs 4 x)
+    blocks, n_blocks = ndimage.label(coarse > 0)
+    block_of = np.zeros(int(coarse.max()) + 1, np.int64)
+    block_of[coarse[coarse > 0]] = blocks[coarse > 0]
+    shared = np.flatnonzero(np.bincount(block_of[1:], minlength=n_blocks + 1)[1:] >= 2) + 1
+    scale = int(round(ndsm.resolution / res))
+    jobs, pieces = [], []
     for i, sl in enumerate(ndimage.find_objects(labels)):
-        if sl is None:
-            continue
-        sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in sl)
-        jobs.append((labels[sl] == i + 1, transform @ Affine.translation(sl[1].start, sl[0].start), res, min_area,
-                     min_edge, config.regularize, extent))
-    polygons = [p for p in (mapper or _serial)(outline_blob, jobs) if p is not None]
-    polygons = _remove_overlaps(polygons, min_area / 4)
+        if sl is not None:
+            jobs.append(_outline_job(labels[_grown(sl, labels.shape)] == i + 1,
+                                     sl, labels.shape, transform, res, min_area, min_edge, config.regularize, extent))
+            pieces.append(i + 1)
+    outlines = (mapper or _serial)(outline_blob, jobs)
+    polygons, owners = _within_blocks(outlines, pieces, labels, blocks, block_of, shared, scale, transform, mapper,
+                                      (res, min_area, min_edge, config.regularize, extent))
+    polygons = _remove_overlaps(polygons, min_area / 4, owners=owners, labels=labels, transform=transform)
     if config.split_step > 0:
         polygons = _close_block_gaps(polygons, blobs.labels * np.r_[False, blobs.kept][blobs.labels], ndsm, ndsm.resolution)
     # the cuts between the parts of a block can leave zero-width needles on an outline
@@ -1058,6 +1144,48 @@ def detect_buildings(
 
 def _serial(func, jobs: list) -> list:
     return [func(job) for job in jobs]
+
+
+def _within_blocks(outlines, pieces, labels, blocks, block_of, shared, scale, transform, mapper, outline_args):
+    """The pieces' outlines (None dropped) and their labels, each kept inside its block:
+    a piece regularised on its own may carry a corner or a wall out past its block's
+    wall (a step cut leaves it a short side to fit); where one reaches more than half a
+    cell past the block's cells, the block's own regularised outline clips it."""
+    res = outline_args[0]
+    boxes = ndimage.find_objects(blocks)
+    window = {int(b): _grown(tuple(slice(x.start * scale, x.stop * scale) for x in boxes[b - 1]), labels.shape)
+              for b in shared}
+    cells = {}
+    for b, sl in window.items():
+        raw = outline_mod.raster_outline(block_of[labels[sl]] == b, transform @ Affine.translation(sl[1].start, sl[0].start))
+        cells[b] = raw.buffer(0.5 * res, join_style="mitre") if raw is not None else None
+    past = sorted({int(block_of[i]) for i, p in zip(pieces, outlines, strict=True)
+                   if p is not None and cells.get(int(block_of[i])) is not None
+                   and p.difference(cells[int(block_of[i])]).area > 0.01 * res**2})
+    jobs = [(block_of[labels[window[b]]] == b, transform @ Affine.translation(window[b][1].start, window[b][0].start),
+             *outline_args) for b in past]
+    bound = dict(zip(past, (mapper or _serial)(outline_blob, jobs), strict=True))
+    polygons, owners = [], []
+    for i, p in zip(pieces, outlines, strict=True):
+        edge = bound.get(int(block_of[i]))
+        if p is not None and edge is not None and not edge.contains(p):
+            p = outline_mod._valid_polygon(p.intersection(edge))
+        if p is not None:
+            polygons.append(shapely.orient_polygons(p))
+            owners.append(int(i))
+    return polygons, owners
+
+
+def _grown(sl: tuple[slice, slice], shape: tuple[int, int]) -> tuple[slice, slice]:
+    """A box of the grid one cell wider on every side (within the grid)."""
+    return tuple(slice(max(s.start - 1, 0), min(s.stop + 1, n)) for s, n in zip(sl, shape, strict=True))
+
+
+def _outline_job(cells, sl, shape, transform, res, min_area, min_edge, regularize, extent) -> tuple:
+    """The :func:`outline_blob` job of ``cells`` (bool, the box ``sl`` grown by :func:`_grown`)."""
+    box = _grown(sl, shape)
+    return (cells, transform @ Affine.translation(box[1].start, box[0].start), res, min_area, min_edge, regularize,
+            extent)
 
 
 def outline_blob(job: tuple) -> shapely.Polygon | None:
@@ -1286,21 +1414,53 @@ def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid:
     return out
 
 
-def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float) -> list[shapely.Polygon]:
-    """Cut later (smaller) polygons where they overlap earlier (larger) ones."""
-    polygons = sorted(polygons, key=lambda p: -p.area)
-    tree = shapely.STRtree(polygons) if polygons else None
-    out: list[shapely.Polygon] = []
-    for i, p in enumerate(polygons):
-        near = [j for j in tree.query(p, predicate="intersects") if j < i] if tree is not None else []
-        if near:
-            cut = p.difference(shapely.union_all([polygons[j] for j in near]))
-            cut = outline_mod._valid_polygon(cut)
-            if cut is None or cut.area < min_area:
+def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float, *, owners: list[int] | None = None,
+                     labels: np.ndarray | None = None, transform: Affine | None = None) -> list[shapely.Polygon]:
+    """Cut each overlap of two polygons out of one of them: the one with fewer of its own
+    cells in it (``labels`` equal to its ``owners`` entry, on the grid of ``transform``),
+    or without cells, the smaller. Regularised outlines of touching parts overlap
+    along their shared wall; the cells say whose wall it is.
+    """
+    polygons = list(polygons)
+    n = len(polygons)
+    if n < 2:
+        return polygons
+    area = np.array([p.area for p in polygons])
+    left, right = shapely.STRtree(polygons).query(polygons, predicate="intersects")
+    keep = left < right
+    cut: list[list[int]] = [[] for _ in range(n)]
+    for a, b in zip(left[keep], right[keep], strict=True):
+        overlap = polygons[a].intersection(polygons[b])
+        if overlap.area <= 0:
+            continue
+        ca, cb = (_cells_in(overlap, owners[k], labels, transform) for k in (a, b)) if owners else (0, 0)
+        if (ca, area[a], -a) > (cb, area[b], -b):  # a keeps the overlap
+            cut[b].append(a)
+        else:
+            cut[a].append(b)
+    out = []
+    for k in np.lexsort((np.arange(n), -area)):  # larger first, as before
+        p = polygons[k]
+        if cut[k]:
+            p = outline_mod._valid_polygon(p.difference(shapely.union_all([polygons[j] for j in cut[k]])))
+            if p is None or p.area < min_area:
                 continue
-            p = shapely.orient_polygons(cut)
+            p = shapely.orient_polygons(p)
         out.append(p)
     return out
+
+
+def _cells_in(region: shapely.Geometry, value: int, labels: np.ndarray, transform: Affine) -> int:
+    """Cells of ``labels`` equal to ``value`` whose centres lie in ``region``."""
+    inv = ~transform
+    x0, y0, x1, y1 = region.bounds
+    corners = np.array([inv @ (x, y) for x in (x0, x1) for y in (y0, y1)])  # (4, 2) col, row
+    c0, r0 = np.maximum(np.floor(corners.min(axis=0)).astype(int), 0)
+    c1, r1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+    r, c = np.nonzero(labels[r0:r1, c0:c1] == value)
+    x = transform.a * (c + c0 + 0.5) + transform.b * (r + r0 + 0.5) + transform.c
+    y = transform.d * (c + c0 + 0.5) + transform.e * (r + r0 + 0.5) + transform.f
+    return int(shapely.contains_xy(region, x, y).sum())
 
 
 def label_footprints(polygons: list[shapely.Polygon], grid: Raster, *, all_touched: bool = False) -> np.ndarray:
