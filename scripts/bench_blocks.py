@@ -3,9 +3,11 @@
 Each town (:func:`recon3d.synthetic.terraces.terraced_town` with ``mix=True``) holds
 rows of attached houses whose heights mix as real terraces do (some as high as their
 neighbour, most 0.5-4 m apart; flat roofs, ridges along or across the row, dormers).
-Detection runs on its nDSM twice: with the split at height steps
-(``split_step``, the default) and without it (only the 2 m ``split_height``). Scores
-against the true houses:
+Detection runs on its nDSM twice: with the split at height steps and valleys
+(``split_step``, the default) and without it (only the 2 m ``split_height``); a third
+row is the reference a split would reach that cut at every true step and valley and
+nowhere else (houses of one height under one roof stay together: nothing in the heights
+parts them). Scores against the true houses:
 
 * one-to-one: share of houses matched by one detected building with IoU >= 0.5 (at
   that IoU a match is unique both ways);
@@ -25,6 +27,7 @@ import dataclasses
 import time
 
 import _bench
+import numpy as np
 import shapely
 
 from recon3d.buildings import detect
@@ -54,14 +57,25 @@ def score(detected: list[shapely.Polygon], houses: list[shapely.Polygon]) -> dic
             "buildings": len(detected)}
 
 
-def run(seeds, config: BuildingsConfig) -> dict[str, float]:
-    """Summed scores and detection time over ``seeds``."""
+def every_true_cut(town) -> list[shapely.Polygon]:
+    """The buildings of a split at every true step and valley and nowhere else: each run
+    of houses nothing in the roofs parts (:attr:`~recon3d.synthetic.terraces.TerracedTown.parted`) as one."""
+    runs = np.cumsum(town.parted)
+    return [shapely.union_all([p for (p, _), r in zip(town.houses, runs, strict=True) if r == k])
+            for k in np.unique(runs)]
+
+
+def run(seeds, config: BuildingsConfig | None) -> dict[str, float]:
+    """Summed scores and detection time over ``seeds``; ``config`` None: :func:`every_true_cut`."""
     total: dict[str, float] = {}
     seconds = 0.0
     for seed in seeds:
         town = terraced_town(seed, mix=True)
         start = time.perf_counter()
-        polygons = detect.detect_buildings(town.ndsm, town.vegetation.data > 0.5, config, Units())
+        if config is None:
+            polygons = every_true_cut(town)
+        else:
+            polygons = detect.detect_buildings(town.ndsm, town.vegetation.data > 0.5, config, Units())
         seconds += time.perf_counter() - start
         for k, v in score(polygons, [p for p, _ in town.houses]).items():
             total[k] = total.get(k, 0.0) + v
@@ -76,7 +90,8 @@ def main() -> None:
     sets = {"dev 0-9": DEV[:2] if args.quick else DEV}
     if not args.quick:
         sets["held-out 20-29"] = HELD_OUT
-    configs = {"2 m jumps only": dataclasses.replace(BuildingsConfig(), split_step=0.0), "steps": BuildingsConfig()}
+    configs = {"2 m jumps only": dataclasses.replace(BuildingsConfig(), split_step=0.0), "steps": BuildingsConfig(),
+               "every true cut": None}
     print(f"{'seeds':15s} {'detection':15s} {'houses':>6s} {'buildings':>9s} {'one-to-one %':>12s} "
           f"{'complete %':>10s} {'correct %':>9s} {'ms/building':>11s}")
     for name, seeds in sets.items():

@@ -55,6 +55,10 @@ class TerracedTown:
         Old ids on open ground.
     houses : list of (shapely.Polygon, float)
         Every true house: its outline and its highest point above ground (m).
+    parted : list of bool
+        Per house, whether its roof tells it apart from the house before it in its row
+        (a different height, or gables side by side meeting in a valley), or it starts
+        a row: what a split at every true step and valley would cut.
     """
 
     old: list
@@ -65,6 +69,7 @@ class TerracedTown:
     raised: set
     demolished: set
     houses: list = field(default_factory=list)
+    parted: list = field(default_factory=list)
 
 
 def terraced_town(
@@ -93,10 +98,11 @@ def terraced_town(
     shape = (int(size / res), int(size / res))
     transform = Affine(res, 0, x0, 0, -res, y0 + size)
     if mix:
-        houses, rows, ndsm = _mixed_rows(rng, x0, y0, size, angle, origin, shape, transform)
+        houses, rows, ndsm, parted = _mixed_rows(rng, x0, y0, size, angle, origin, shape, transform)
     else:
         houses, rows = _rows(rng, x0, y0, size, lambda g: shapely.affinity.rotate(g, angle, origin=origin))
         ndsm = rasterio.features.rasterize(houses, out_shape=shape, transform=transform, fill=0, dtype="float32")
+        parted = [k == 0 or houses[i][1] != houses[i - 1][1] for row in rows for k, i in enumerate(row)]
     ndsm += rng.normal(0, 0.05, shape).astype(np.float32)
     built = shapely.union_all([p for p, _ in houses])
     trees = _scatter(rng, x0, y0, size, 8, lambda c: c.buffer(rng.uniform(3, 6)), built, gap=0.5)
@@ -126,7 +132,7 @@ def terraced_town(
     return TerracedTown(
         old, CityModel(new, None, LocalFrame((x0, y0, g0))), Raster(ndsm, transform),
         Raster(crowns.astype(np.float32), transform), {f"h{i:03d}": houses[i][0] for i in sorted(removed)},
-        {f"h{i:03d}" for i in raised}, {f"fake{k + 1}" for k in range(len(fakes))}, houses,
+        {f"h{i:03d}" for i in raised}, {f"fake{k + 1}" for k in range(len(fakes))}, houses, parted,
     )
 
 
@@ -171,6 +177,8 @@ def _mixed_rows(rng, x0, y0, size, angle, origin, shape, transform):
     rows : list of list of int
     ndsm : (rows, cols) float32
         The roofs' heights above ground, 0 elsewhere (no noise yet).
+    parted : list of bool
+        :attr:`TerracedTown.parted`.
     """
     boxes, params, rows = [], [], []
     kinds, shares = zip(*ROOF_KINDS, strict=True)
@@ -223,7 +231,9 @@ def _mixed_rows(rng, x0, y0, size, angle, origin, shape, transform):
     z = np.where(on, np.maximum(z, eave + rise * 0.6), z)
     ndsm = np.zeros(shape, np.float32)
     ndsm[r, c] = z
-    return houses, rows, ndsm
+    parted = [k == 0 or params[i][0] == "across" or params[i][1:3] != params[i - 1][1:3]
+              for row in rows for k, i in enumerate(row)]
+    return houses, rows, ndsm, parted
 
 
 def _scatter(rng, x0, y0, size, count, make, avoid, gap) -> list:
