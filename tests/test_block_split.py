@@ -304,8 +304,23 @@ def test_overlap_goes_to_the_part_whose_cells_lie_in_it():
     labels[2:18, 2:20] = 1  # the large part: columns 2-19
     labels[2:18, 20:27] = 2  # the small one: columns 20-26
     large, small = shapely.box(2, 2, 22, 18), shapely.box(20, 2, 27, 18)  # the large one reaches 2 m too far
-    out = detect._remove_overlaps([large, small], 1.0, owners=[1, 2], labels=labels, transform=transform)
+    out = detect._remove_overlaps([large, small], 1.0, 1.0, owners=[1, 2], labels=labels, transform=transform)
     assert {round(p.area) for p in out} == {16 * 18, 16 * 7}
     assert not out[0].intersection(out[1]).area
-    plain = detect._remove_overlaps([large, small], 1.0)
+    plain = detect._remove_overlaps([large, small], 1.0, 1.0)
     assert {round(p.area) for p in plain} == {16 * 20, 16 * 5}
+
+
+def test_overlap_cut_leaves_no_sliver():
+    """A neighbour whose wall runs half a millimetre inside this part's wall leaves no
+    sliver of that width behind when its overlap is cut out (a building with such a
+    sliver failed the mesh check on a random survey)."""
+    transform = Affine(0.5, 0.0, 0.0, 0.0, -0.5, 10.0)
+    labels = np.ones((20, 20), np.int32)
+    labels[10:, 4:10] = 2  # the neighbour's cells: x 2-5, y 0-5
+    part, neighbour = shapely.box(0, 0, 10, 10), shapely.box(2, 0.0005, 5, 5)
+    out = detect._remove_overlaps([part, neighbour], 1.0, 0.5, owners=[1, 2], labels=labels, transform=transform)
+    cut = next(p for p in out if not p.equals(neighbour))
+    assert cut.is_valid and cut.area == pytest.approx(85.0, abs=1e-4)
+    opened = cut.buffer(-0.001, join_style="mitre").buffer(0.001, join_style="mitre")
+    assert opened.area == pytest.approx(cut.area, abs=1e-6)

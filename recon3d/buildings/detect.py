@@ -1131,7 +1131,7 @@ def detect_buildings(
     outlines = (mapper or _serial)(outline_blob, jobs)
     polygons, owners = _within_blocks(outlines, pieces, labels, blocks, block_of, shared, scale, transform, mapper,
                                       (res, min_area, min_edge, config.regularize, extent))
-    polygons = _remove_overlaps(polygons, min_area / 4, owners=owners, labels=labels, transform=transform)
+    polygons = _remove_overlaps(polygons, min_area / 4, res, owners=owners, labels=labels, transform=transform)
     if config.split_step > 0:
         polygons = _close_block_gaps(polygons, blobs.labels * np.r_[False, blobs.kept][blobs.labels], ndsm, ndsm.resolution)
     # the cuts between the parts of a block can leave zero-width needles on an outline
@@ -1414,13 +1414,15 @@ def _close_block_gaps(polygons: list[shapely.Polygon], labels: np.ndarray, grid:
     return out
 
 
-def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float, *, owners: list[int] | None = None,
+def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float, cell: float, *, owners: list[int] | None = None,
                      labels: np.ndarray | None = None, transform: Affine | None = None) -> list[shapely.Polygon]:
     """Cut each overlap of two polygons out of one of them: the one with fewer of its own
     cells in it (``labels`` equal to its ``owners`` entry, on the grid of ``transform``),
     or without cells, the smaller. Regularised outlines of touching parts overlap
-    along their shared wall; the cells say whose wall it is.
+    along their shared wall; the cells say whose wall it is. ``cell``: the grid's cell
+    (CRS units), a fiftieth of which is the narrowest part a cut polygon keeps.
     """
+    eps = 0.02 * cell
     polygons = list(polygons)
     n = len(polygons)
     if n < 2:
@@ -1442,10 +1444,12 @@ def _remove_overlaps(polygons: list[shapely.Polygon], min_area: float, *, owners
     for k in np.lexsort((np.arange(n), -area)):  # larger first, as before
         p = polygons[k]
         if cut[k]:
-            p = outline_mod._valid_polygon(p.difference(shapely.union_all([polygons[j] for j in cut[k]])))
+            p = p.difference(shapely.union_all([polygons[j] for j in cut[k]]))
+            # an opening of a fiftieth of a cell drops the slivers a cut along a nearly shared wall leaves
+            p = outline_mod._valid_polygon(p.buffer(-eps, join_style="mitre").buffer(eps, join_style="mitre"))
             if p is None or p.area < min_area:
                 continue
-            p = shapely.orient_polygons(p)
+            p = shapely.orient_polygons(shapely.simplify(p, eps))
         out.append(p)
     return out
 
