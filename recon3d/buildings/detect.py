@@ -1121,7 +1121,6 @@ def detect_buildings(
     block_of = np.zeros(int(coarse.max()) + 1, np.int64)
     block_of[coarse[coarse > 0]] = blocks[coarse > 0]
     shared = np.flatnonzero(np.bincount(block_of[1:], minlength=n_blocks + 1)[1:] >= 2) + 1
-    scale = int(round(ndsm.resolution / res))
     jobs, pieces = [], []
     for i, sl in enumerate(ndimage.find_objects(labels)):
         if sl is not None:
@@ -1129,7 +1128,7 @@ def detect_buildings(
                                      sl, labels.shape, transform, res, min_area, min_edge, config.regularize, extent))
             pieces.append(i + 1)
     outlines = (mapper or _serial)(outline_blob, jobs)
-    polygons, owners = _within_blocks(outlines, pieces, labels, blocks, block_of, shared, scale, transform, mapper,
+    polygons, owners = _within_blocks(outlines, pieces, labels, blocks, block_of, shared, ndsm.transform, ndsm.resolution, mapper,
                                       (res, min_area, min_edge, config.regularize, extent))
     polygons = _remove_overlaps(polygons, min_area / 4, res, owners=owners, labels=labels, transform=transform)
     if config.split_step > 0:
@@ -1146,25 +1145,43 @@ def _serial(func, jobs: list) -> list:
     return [func(job) for job in jobs]
 
 
-def _within_blocks(outlines, pieces, labels, blocks, block_of, shared, scale, transform, mapper, outline_args):
-    """The pieces' outlines (None dropped) and their labels, each kept inside its block:
-    a piece regularised on its own may carry a corner or a wall out past its block's
-    wall (a step cut leaves it a short side to fit); where one reaches more than half a
-    cell past the block's cells, the block's own regularised outline clips it."""
-    res = outline_args[0]
+def _within_blocks(outlines, pieces, labels, blocks, block_of, shared, coarse_transform, coarse_res, mapper, outline_args):
+    """The pieces' outlines (None dropped) and their labels, each kept inside its block.
+
+    A piece regularised on its own may carry a corner or a wall out past its block's
+    wall (a step cut leaves it a short side to fit): the regularised outline of the
+    block's DSM cells clips it. (The block outlined on the finer grid of the pieces
+    kept more of their bulges: the Delft strip's model DSM inside roofs 0.71 m RMS
+    against 0.62 m.)
+
+    Parameters
+    ----------
+    outlines : list of shapely.Polygon or None
+        The regularised outline of each piece.
+    pieces : list of int
+        Their labels in ``labels``.
+    labels : (rows, cols) int
+        The pieces (on the DSM grid or a finer one).
+    blocks : (rows', cols') int
+        The blocks (touching kept blobs) on the DSM grid, of ``coarse_transform`` and
+        cell ``coarse_res``; ``block_of`` maps a piece's label to its block.
+    shared : (k,) int
+        The blocks of two or more pieces.
+    mapper, outline_args
+        As :func:`detect_buildings` outlines its blobs (:func:`outline_blob`'s job after
+        its cells and transform: cell, smallest hole and edge, regularise, extent).
+
+    Returns
+    -------
+    polygons : list of shapely.Polygon
+    owners : list of int
+        The label of each.
+    """
     boxes = ndimage.find_objects(blocks)
-    window = {int(b): _grown(tuple(slice(x.start * scale, x.stop * scale) for x in boxes[b - 1]), labels.shape)
-              for b in shared}
-    cells = {}
-    for b, sl in window.items():
-        raw = outline_mod.raster_outline(block_of[labels[sl]] == b, transform @ Affine.translation(sl[1].start, sl[0].start))
-        cells[b] = raw.buffer(0.5 * res, join_style="mitre") if raw is not None else None
-    past = sorted({int(block_of[i]) for i, p in zip(pieces, outlines, strict=True)
-                   if p is not None and cells.get(int(block_of[i])) is not None
-                   and p.difference(cells[int(block_of[i])]).area > 0.01 * res**2})
-    jobs = [(block_of[labels[window[b]]] == b, transform @ Affine.translation(window[b][1].start, window[b][0].start),
-             *outline_args) for b in past]
-    bound = dict(zip(past, (mapper or _serial)(outline_blob, jobs), strict=True))
+    window = {int(b): _grown(boxes[b - 1], blocks.shape) for b in shared}
+    jobs = [(blocks[sl] == b, coarse_transform @ Affine.translation(sl[1].start, sl[0].start), coarse_res,
+             *outline_args[1:]) for b, sl in window.items()]
+    bound = dict(zip(window, (mapper or _serial)(outline_blob, jobs), strict=True))
     polygons, owners = [], []
     for i, p in zip(pieces, outlines, strict=True):
         edge = bound.get(int(block_of[i]))
