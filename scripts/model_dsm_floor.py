@@ -15,8 +15,9 @@ report's building cells (``model_check_cells``):
    positions inside it; the spread of the highest point per cell is what no
    rendering can predict.
 
-Each line splits into cells wholly under the model's roofs and the others (cells a
-wall crosses, or the outline's neighbours).
+Each line splits into the report's cells "inside roofs" (wholly under the model's
+roofs, crossed by no wall) and the others (cells an outer wall, a party wall or a step
+between roof parts crosses, or the outline's neighbours).
 
     .venv/bin/python scripts/model_dsm_floor.py [LAZ] [--crs EPSG:7415] [--draws 12]
 """
@@ -29,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from recon3d.buildings.detect import vegetation_mask
 from recon3d.core.geo import parse_crs
 from recon3d.pipeline.run import run
 from recon3d.quality.evaluate import model_check_cells
-from recon3d.quality.rasterize import surface_at
+from recon3d.quality.rasterize import surface_at, wall_cells
 from recon3d.terrain.dsm import grid_points, surface_points
 
 DELFT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "lidar" / "delft_ahn3_strip.laz"
@@ -46,9 +48,9 @@ def main() -> None:
     args = parser.parse_args()
     crs = args.crs or ("EPSG:7415" if args.laz == DELFT else None)
     with tempfile.TemporaryDirectory() as tmp:
-        s = run(args.laz, Path(tmp) / "out", crs=parse_crs(crs) if crs else None)
-    cells = model_check_cells(s.dsm, s.model_dsm, s.labels, s.vegetation_share, s.dsm_filled)
-    inside = cells & (s.roof_cover >= 1.0)
+        s = run(args.laz, Path(tmp) / "out", crs=parse_crs(crs) if crs else None, keep_points=True)
+    cells = model_check_cells(s.dsm, s.model_dsm, s.labels, vegetation_mask(s.vegetation_share), s.dsm_filled)
+    inside = cells & (s.roof_cover >= 1.0) & ~wall_cells(s.city, s.dsm)
     scanned = s.model_scan.data
     rows = {
         "report: model DSM - DSM": s.model_dsm.data - s.dsm.data,
@@ -56,7 +58,7 @@ def main() -> None:
         "perfect model: model DSM - model scan": s.model_dsm.data - scanned,
         "irreducible: spread of random scans": _random_scans(s, args.draws),
     }
-    print(f"{args.laz.name}: {int(cells.sum())} building cells, {int(inside.sum())} wholly under roofs")
+    print(f"{args.laz.name}: {int(cells.sum())} building cells, {int(inside.sum())} inside roofs (wholly under them, no wall)")
     print(f"{'':42s}{'all':>8s}{'inside roofs':>14s}{'others':>9s}   (RMS, m)")
     for name, diff in rows.items():
         print(f"{name:42s}" + "".join(f"{_rms(diff, m):{w}.3f}" for m, w in ((cells, 8), (inside, 14), (cells & ~inside, 9))))

@@ -1456,6 +1456,7 @@ def evaluate_products(r: Run) -> None:
     """Every point's class (cloud.laz), and the accuracy tables of the products."""
     from recon3d.quality import buildings as building_quality
     from recon3d.quality import evaluate
+    from recon3d.quality.rasterize import wall_cells
 
     u, g, sf, t, q = r.units, r.grid, r.surface, r.terrain, r.quality
     summary = r.source.summary
@@ -1479,9 +1480,9 @@ def evaluate_products(r: Run) -> None:
         tables += evaluate.against_checkpoints(products, r.source.checkpoints, u)
     roofs = sf.dsm.data - q.model_dsm.data
     on_buildings = evaluate.model_check_cells(sf.dsm, q.model_dsm, r.labels, r.evidence.vegetated, sf.filled)
-    # cells a wall crosses mix roof and ground: there the difference measures where the
-    # outline runs (its own accuracy, planimetric), not the roof's height
-    inside_roofs = on_buildings & (q.roof_cover >= 1.0)
+    # cells a wall crosses mix roof and ground, or two roofs: there the difference
+    # measures where the wall runs (its own accuracy, planimetric), not the roof's height
+    inside_roofs = on_buildings & (q.roof_cover >= 1.0) & ~wall_cells(r.city, sf.dsm)
     for cells, reference in ((on_buildings, "measured DSM on roofs"), (inside_roofs, "measured DSM inside roofs")):
         tables.append(
             AccuracyReport.from_errors(-roofs[cells], product="model DSM", reference=reference, metres_per_unit=u.vertical)

@@ -7,7 +7,7 @@ import numpy as np
 from recon3d.core.city import CityModel
 from recon3d.core.raster import Raster
 
-__all__ = ["model_dsm", "model_tags", "ray_top", "render", "surface_at"]
+__all__ = ["model_dsm", "model_tags", "ray_top", "render", "surface_at", "wall_cells"]
 
 
 def model_dsm(city: CityModel, dtm: Raster, *, lod: str | None = None, samples: int = 3) -> Raster:
@@ -88,14 +88,45 @@ def ray_top(city: CityModel, lod: str | None = None) -> float:
     return max(tops, default=0.0) + 10.0
 
 
-def _meshes(city: CityModel, lod: str | None) -> list:
-    """The triangles (:class:`~recon3d.core.mesh.SolidMesh`) of one solid per building: ``lod``, else its highest."""
-    meshes = []
+def wall_cells(city: CityModel, grid: Raster, *, lod: str | None = None) -> np.ndarray:
+    """(rows, cols) bool: the cells of ``grid`` that a wall of the model crosses.
+
+    Every ``WallSurface`` of the solid :func:`render` casts against (``lod``, else the
+    highest): the outer walls, the party walls between the buildings of a block and the
+    steps between the parts of one roof. Such a cell holds two heights a wall apart,
+    and its measured DSM takes the one its points happened to fall on.
+    """
+    import rasterio.features
+    import shapely
+
+    rings, owner = [], []
+    for solid in _solids(city, lod):
+        for surface, kind in zip(solid.surfaces, solid.semantics, strict=True):
+            if kind == "WallSurface":
+                ring = solid.vertices[surface[0], :2]
+                rings.append(np.vstack([ring, ring[:1]]))
+                owner.append(np.full(len(ring) + 1, len(owner)))
+    if not rings:
+        return np.zeros(grid.shape, bool)
+    traces = shapely.linestrings(np.vstack(rings) + np.asarray(city.frame.origin[:2]), indices=np.concatenate(owner))
+    burnt = rasterio.features.rasterize(traces, out_shape=grid.shape, transform=grid.transform, all_touched=True,
+                                        dtype=np.uint8)
+    return burnt.astype(bool)
+
+
+def _solids(city: CityModel, lod: str | None) -> list:
+    """One solid per building: ``lod``, else its highest."""
+    solids = []
     for b in city:
         key = lod if lod in b.solids else max(b.solids, default=None, key=float)
         if key is not None:
-            meshes.append(b.solids[key].mesh())
-    return meshes
+            solids.append(b.solids[key])
+    return solids
+
+
+def _meshes(city: CityModel, lod: str | None) -> list:
+    """The triangles (:class:`~recon3d.core.mesh.SolidMesh`) of one solid per building: ``lod``, else its highest."""
+    return [solid.mesh() for solid in _solids(city, lod)]
 
 
 class _Scene:
