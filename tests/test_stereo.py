@@ -653,3 +653,25 @@ def test_the_dsm_is_never_below_the_dtm(stereo_run, scene):
     truth = _on_grid(read_raster(scene / "truth" / "dsm.tif"), stereo_run.dsm)
     on_dtm = both & (dsm == dtm) & np.isfinite(truth)
     assert np.median(np.abs(dsm[on_dtm] - truth[on_dtm])) < 0.3
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_isolated_counts_the_points_of_the_27_cubes(seed):
+    """Fusion's outlier test against a plain count: each point's neighbours are the
+    other points in its own and the 26 adjacent voxels (a surface, a few floating
+    points, and clusters that straddle voxel and column borders)."""
+    from recon3d.stereo.fuse import isolated
+
+    rng = np.random.default_rng(seed)
+    surface = np.column_stack([rng.uniform(0, 6, (1200, 2)), rng.normal(0, 0.05, 1200)])
+    floating = rng.uniform([0, 0, -3], [6, 6, 3], (100, 3))
+    clusters = np.repeat(rng.uniform(0, 6, (25, 3)), 4, axis=0) + rng.normal(0, 0.2, (100, 3))
+    xyz = np.concatenate([surface, floating, clusters])
+    voxel = 0.4
+    v = np.floor((xyz - xyz.min(axis=0)) / voxel).astype(np.int64)
+    adjacent = np.ones((len(v), len(v)), bool)
+    for axis in range(3):
+        adjacent &= np.abs(v[:, None, axis] - v[None, :, axis]) <= 1
+    near = adjacent.sum(axis=1) - 1
+    for least in (1, 4, 9):
+        assert np.array_equal(isolated(xyz, voxel, least), near < least)

@@ -77,13 +77,18 @@ def isolated(xyz: np.ndarray, voxel: float, min_neighbours: int) -> np.ndarray:
     dims = column_bounds(v)[1] + 2
     key = (v[:, 0] * dims[1] + v[:, 1]) * dims[2] + v[:, 2]
     cells, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    # z is the fastest index: a column's three cubes are neighbours in the sorted keys,
+    # so one search per column finds all three
+    padded_cells = np.r_[-2, cells, cells[-1] + 2]  # sentinels: no key is next to them
+    padded_counts = np.r_[0, counts, 0]
     total = np.zeros(len(cells), np.int64)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                other = cells + (dx * dims[1] + dy) * dims[2] + dz
-                at = np.minimum(np.searchsorted(cells, other), len(cells) - 1)
-                total += np.where(cells[at] == other, counts[at], 0)
+            centre = cells + (dx * dims[1] + dy) * dims[2]
+            at = np.searchsorted(padded_cells, centre)  # the first key >= centre
+            for dz, index in ((-1, at - 1), (0, at), (1, at), (1, at + 1)):
+                index = np.minimum(index, len(padded_cells) - 1)
+                total += np.where(padded_cells[index] == centre + dz, padded_counts[index], 0)
     return (total[inverse] - 1) < min_neighbours
 
 
