@@ -502,6 +502,49 @@ def test_segment_roof_seeded_planes():
     assert seg.rms < 0.07
 
 
+def _matched_gable_under_a_crown(seed: int = 1, density: float = 200.0):
+    """A gable roof as dense image matching gives it (``density`` points/m2), a fifth of
+    it under a tree crown matched at four times that density at every height of the
+    crown: (world points, world footprint, frame)."""
+    fun, fp = ROOFS["gable"]
+    pts, fpw, frame = _synthetic(fun, fp, density=density, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    centre, radius = np.array([8.0, 16.0]), 5.0
+    m = int(np.pi * radius**2 * density * 4)
+    angle, reach = rng.uniform(0, 2 * np.pi, m), radius * np.sqrt(rng.random(m))
+    xy = centre + np.column_stack([reach * np.cos(angle), reach * np.sin(angle)])
+    z = 12.0 + np.sqrt(radius**2 - reach**2) * rng.uniform(-0.8, 1.0, m)
+    crown = np.column_stack([xy, z])[shapely.contains_xy(fp, xy[:, 0], xy[:, 1])]
+    return np.concatenate([pts, crown + np.asarray(frame.origin)]), fpw, frame
+
+
+def test_dense_matched_roof_under_a_crown_is_lod22(monkeypatch):
+    """A photogrammetric cloud (200 points/m2, a crown matched at several heights over a
+    fifth of the roof) is thinned to MAX_ROOF_DENSITY on a fixed grid before the roof is
+    modelled: the crown's stacked points no longer outnumber the roof's (with every
+    point, less than half lay on a plane: low_coverage, LoD1.3), and the partition's
+    work no longer grows with the matcher's density."""
+    pts, fpw, frame = _matched_gable_under_a_crown()
+    from recon3d.buildings import roofs
+
+    seen, real = [], roofs.segment_roof
+
+    def spy(points, *args, **kwargs):
+        seen.append(len(points))
+        return real(points, *args, **kwargs)
+
+    monkeypatch.setattr(roofs, "segment_roof", spy)
+    result = lod.build_lods(fpw, pts, 0.0, 10.0, frame, ALL_LODS)
+    _all_valid(result)
+    assert result.status == "ok" and result.roof_type == "gable", (result.status, result.reason)
+    assert result.roof_rms < 0.15
+    assert len(seen) == 1 and seen[0] <= 1.05 * lod.MAX_ROOF_DENSITY * fpw.area  # of 84,000 (cells on the rim)
+    # a point order of its own gives the same solids (the thinning takes each cell's first point in sorted order)
+    again = lod.build_lods(fpw, pts[np.random.default_rng(3).permutation(len(pts))], 0.0, 10.0, frame, ALL_LODS)
+    for key, solid in result.solids.items():
+        assert np.array_equal(solid.vertices, again.solids[key].vertices)
+
+
 # --------------------------------------------------------------------------- bad input
 
 
