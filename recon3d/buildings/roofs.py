@@ -269,8 +269,9 @@ def segment_roof(
     sub_min = max(int(p.min_points), int(round(p.min_plane_area / sub_spacing**2)))
     if len(sub) < sub_min:
         return empty
-    normals, curvature = _normals(sub, min(p.neighbours, len(sub)))
-    edges = cKDTree(sub).query_pairs(max(2.0 * sub_spacing, 1.5 * p.distance), output_type="ndarray")
+    tree = cKDTree(sub)
+    normals, curvature = _normals(sub, min(p.neighbours, len(sub)), tree)
+    edges = tree.query_pairs(max(2.0 * sub_spacing, 1.5 * p.distance), output_type="ndarray")
     groups = _ransac_planes(sub, normals, curvature, edges, sub_min, p)
     too_many = len(groups) > 2 * p.max_planes  # the search stopped early
     if not groups:
@@ -284,7 +285,7 @@ def segment_roof(
     if len(thin) < n:
         # the points left out by the thinning take their nearest kept point's plane
         rest = np.setdiff1d(np.arange(n), thin)
-        near = thin[cKDTree(sub).query(xyz[rest])[1]]
+        near = thin[tree.query(xyz[rest])[1]]
         k = labels[near]
         ok = k >= 0
         planes_arr = np.array(fits)
@@ -391,9 +392,10 @@ def _thin(xyz: np.ndarray, spacing: float, max_density: float) -> np.ndarray:
     return np.sort(first)
 
 
-def _normals(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals (z >= 0) and surface variation (lambda0 / sum lambda) from k neighbours."""
-    idx = cKDTree(xyz).query(xyz, k=k)[1].reshape(len(xyz), -1)
+def _normals(xyz: np.ndarray, k: int, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals (z >= 0) and surface variation (lambda0 / sum lambda) from k neighbours
+    (``tree``: a k-d tree of ``xyz``, when one is already built)."""
+    idx = (cKDTree(xyz) if tree is None else tree).query(xyz, k=k)[1].reshape(len(xyz), -1)
     nb = xyz[idx]
     nb -= nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
