@@ -183,6 +183,7 @@ def build_lods(
         Points of the building in world coordinates; points outside the footprint
         or less than ``min(1 m, half the building height)`` above ``ground_z`` are
         ignored, so passing the points of the footprint's bounding box is fine.
+        Roof points denser than :data:`MAX_ROOF_DENSITY` are thinned to it.
     ground_z, roof_z : float
         Terrain height under the building and LoD1 roof height (world heights);
         a NaN ``roof_z`` is replaced by the 90th percentile of the roof points.
