@@ -33,6 +33,7 @@ from recon3d.buildings.partition import (
     open_crossings,
     open_pinches,
     partition_rms,
+    refit_parts,
 )
 from recon3d.buildings.roofgrid import LodFailure, RoofGrid, height_levels, label_grid, unpinch
 from recon3d.core.city import Solid
@@ -314,14 +315,14 @@ def _lod22(grid, fp, seg, roof_pts, g, u, cfg) -> tuple[Solid, float]:
         raise LodFailure("low_coverage", f"{seg.coverage:.0%} of the roof points on a plane")
     planes = [p.plane for p in seg.planes]
     try:
-        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True)
+        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True, points=roof_pts)
     except LodFailure as exc:
         if exc.reason != "invalid_mesh":
             raise
         # slivers and specks of roof parts are what usually breaks the shell: once more
         # without them, before falling back to LoD1.3
         log.debug("LoD2.2 retried without small parts: %s", exc)
-        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True, coarse=True)
+        solid, parts = _roofed(grid, fp, planes, g, u, intersect=True, coarse=True, points=roof_pts)
     rms = partition_rms(parts, planes, roof_pts, u.height(1.0))
     if not rms <= u.height(getattr(cfg, "max_roof_rms", 0.5)):
         raise LodFailure("poor_fit", f"roof RMS {rms:.2f}")
@@ -390,7 +391,7 @@ def lod22_solid(
     try:
         grid = label_grid(footprint, points, labels, cell, u.area(1.0))
         planes = [np.asarray(p, float) for p in planes]
-        return _roofed(grid, footprint, planes, ground_z, u, intersect=True)[0]
+        return _roofed(grid, footprint, planes, ground_z, u, intersect=True, points=points)[0]
     except LodFailure as exc:
         raise ValueError(str(exc)) from None
 
@@ -438,13 +439,17 @@ def _codes(issues: list) -> tuple[int, ...]:
     return tuple(sorted({int(i.code) for i in issues}))
 
 
-def _roofed(grid: RoofGrid, fp, planes: list[np.ndarray], g: float, u, *, intersect: bool, coarse: bool = False):
-    """The validated solid of the raster regions (LoD2.2: re-cut along plane intersections)
-    and the regions, (polygon, plane index) pairs, it was built from. ``coarse`` also
-    merges parts smaller than a 2 x 2 block of grid cells or thinner than 10 cm."""
+def _roofed(grid: RoofGrid, fp, planes: list[np.ndarray], g: float, u, *, intersect: bool, coarse: bool = False,
+            points: np.ndarray | None = None):
+    """The validated solid of the raster regions (LoD2.2: re-cut along plane intersections,
+    each part on the plane its ``points`` lie on) and the regions, (polygon, plane index)
+    pairs, it was built from. ``coarse`` also merges parts smaller than a 2 x 2 block of
+    grid cells or thinner than 10 cm."""
     regions = grid_regions(grid, fp)
     if intersect and len(regions) > 1:
         regions = arrangement(regions, planes, fp, grid, u)
+        if points is not None:
+            regions = refit_parts(regions, planes, points, u.height(1.0))
     if coarse:
         regions = absorb_small(regions, (2.0 * grid.cell) ** 2, u.length(0.1))
     regions = absorb_small(regions, (0.5 * grid.cell) ** 2, u.length(0.02))

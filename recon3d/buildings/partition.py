@@ -15,7 +15,7 @@ import shapely
 from recon3d.buildings.roofgrid import RoofGrid
 
 __all__ = ["absorb_small", "arrangement", "drop_close", "grid_regions", "necks", "open_crossings", "open_pinches",
-           "partition_rms"]
+           "partition_rms", "refit_parts"]
 
 
 def grid_regions(grid: RoofGrid, fp) -> list[tuple[shapely.Polygon, int]]:
@@ -219,6 +219,41 @@ def absorb_small(parts, min_area, min_width=0.0):
         if len(polys) == 1:
             big[k] = (polys[0], big[k][1])
     return big
+
+
+def refit_parts(regions, planes, points: np.ndarray, off: float, min_points: int = 10):
+    """Each part with the plane its own points lie on.
+
+    A part keeps its plane unless most of the points inside it lie more than ``off``
+    above or below it (a speck of a lower roof's label left on a higher roof by the
+    label grid's fills and filters) and another plane explains them: then it takes the
+    plane with the smallest median vertical distance to them, if that is under
+    ``off / 2``. Parts with fewer than ``min_points`` points keep theirs.
+
+    Parameters
+    ----------
+    regions : list of (shapely.Polygon, int)
+    planes : list of (4,) float
+    points : (n, 3) float
+        The roof points (the regions' coordinates).
+    off : float
+        Vertical distance beyond which a point is off a plane.
+    """
+    if len(regions) < 2 or len(planes) < 2 or not len(points):
+        return regions
+    plane = np.asarray(planes, dtype=np.float64)
+    pi, ri = shapely.STRtree([p for p, _ in regions]).query(shapely.points(points[:, :2]), predicate="intersects")
+    out = []
+    for j, (poly, label) in enumerate(regions):
+        own = points[pi[ri == j]]
+        if len(own) >= min_points:
+            heights = -(own[:, :1] * plane[:, 0] + own[:, 1:2] * plane[:, 1] + plane[:, 3]) / plane[:, 2]
+            dz = np.abs(own[:, 2:3] - heights)  # (points, planes)
+            best = int(np.argmin(np.median(dz, axis=0)))
+            if np.mean(dz[:, label] > off) > 0.5 and best != label and np.median(dz[:, best]) < 0.5 * off:
+                label = best
+        out.append((poly, label))
+    return out
 
 
 def partition_rms(regions, planes, points: np.ndarray, outlier: float) -> float:
