@@ -71,7 +71,9 @@ __all__ = [
 # 3. (LoD2.2) where two neighbouring planes intersect near their common edge and the
 #    points agree, the footprint is cut along the exact intersection line (ridges,
 #    hips, valleys); the other edges stay height jumps. Faces of the arrangement take
-#    the label of the raster region they overlap most;
+#    the label of the raster region they overlap most, and a part most of whose points
+#    lie more than 1 m off that plane takes the plane they lie on
+#    (``partition.refit_parts``);
 # 4. slivers are merged into neighbours, parts touching themselves at a vertex are
 #    opened, the partition is snapped to a 2 mm grid and made conforming (every
 #    vertex lying on an edge is inserted into it, edges are split where two planes
