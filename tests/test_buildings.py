@@ -123,8 +123,10 @@ def _angle_error(a, b):
 
 def test_delft_against_provider_classes(delft):
     s = delft.scores
-    # measured 96.5 % / 95.9 % (the detection before this work: 86.7 % / 96.7 %)
-    assert s["completeness"] >= 95.0 and s["correctness"] >= 95.0
+    # measured 94.9 % / 97.3 %; 95.6 % / 96.8 % when each fine cell took its highest
+    # point, which drew the outlines 0.05 m further out (half the band between the two
+    # lies on the provider's class 6: this reference cannot tell them apart)
+    assert s["completeness"] >= 94.5 and s["correctness"] >= 95.0
     # measured 0.46 m against the outlines of the provider's class-6 regions (before: 0.64 m)
     assert s["outline_rms"] <= max(0.5, delft.state.dsm.resolution)
     assert s["object_correctness"] == 100.0
@@ -573,6 +575,73 @@ def test_refined_labels_are_the_same_whatever_the_strip(monkeypatch):
         refined.append(detect.refine_labels(labels, dtm, fine, dtm, BuildingsConfig(), Units())[0])
     assert (refined[-1] > 0).sum() > 1000
     assert np.array_equal(refined[0], refined[-1]) and np.array_equal(refined[1], refined[-1])
+
+
+def _sampled_roof(seed: int, half: float = 20.0):
+    """A flat roof 8 m up, rotated at random, sampled by rays at 1-4 points/m2 with the
+    ground around it; its highest-point nDSM on a 2 m grid."""
+    rng = np.random.default_rng(seed)
+    size = 4 * half + 20
+    roof = affinity.rotate(shapely.box(-half, -0.7 * half, half, 0.7 * half), rng.uniform(0, 90))
+    roof = affinity.translate(roof, size / 2 + rng.uniform(-1, 1), size / 2 + rng.uniform(-1, 1))
+    xy = rng.uniform(0, size, (rng.poisson(rng.uniform(1.0, 4.0) * size * size), 2))
+    z = np.where(shapely.contains_xy(roof, xy[:, 0], xy[:, 1]), 8.0, 0.0) + rng.normal(0, 0.03, len(xy))
+    n = int(size / 2)
+    grid = Raster(np.zeros((n, n), np.float32), Affine(2.0, 0, 0, 0, -2.0, 2.0 * n))
+    row, col = grid.rowcol(xy[:, 0], xy[:, 1])
+    ok = (row >= 0) & (row < n) & (col >= 0) & (col < n)
+    np.maximum.at(grid.data, (row[ok], col[ok]), z[ok].astype(np.float32))
+    return roof, PointCloud(np.column_stack([xy, z])), grid
+
+
+@pytest.mark.parametrize("pick", ["nearest", "highest"])
+def test_outlines_from_points_are_not_drawn_wide(pick):
+    """The fine cells split the ground between the points as a Voronoi diagram does
+    (each takes the point nearest its centre), so the outlines stand where the roof's
+    edge is: over twelve roofs at 1-4 points/m2 the mean outline offset is
+    -0.04 m (the corners the regularisation cuts). A fine cell that takes its highest
+    point is raised whenever one roof point fell in it: +0.11 m, which only a torn
+    matched cloud wants (the stereo path's choice)."""
+    offsets = []
+    for seed in range(12):
+        roof, cloud, ndsm = _sampled_roof(seed)
+        fine = detect.fine_surface(cloud, ndsm, pick=pick)
+        flat = ndsm.like(np.zeros(ndsm.shape, np.float32))
+        found = detect.detect_buildings(ndsm, np.zeros(ndsm.shape), BuildingsConfig(), Units(), fine=fine, dtm=flat)
+        assert len(found) == 1
+        offsets.append((found[0].area - roof.area) / roof.length)
+    mean = float(np.mean(offsets))
+    if pick == "nearest":
+        assert abs(mean) <= 0.06, offsets
+    else:
+        assert mean >= 0.09, offsets
+
+
+def test_points_near_an_outline_take_its_polygon():
+    """The cells' labels are taken at their centres; the points of the cells an outline
+    crosses are judged against the polygons: exactly those inside a footprint get its
+    label, a point on two footprints' shared wall the lower one, and points of cells
+    away from any outline keep their cell's label."""
+    grid = Raster(np.zeros((20, 20), np.float32), Affine(2.0, 0, 0, 0, -2.0, 40.0))
+    left = affinity.rotate(shapely.box(7.3, 9.1, 20.0, 27.7), 7.0, origin=(20.0, 20.0))
+    right = affinity.rotate(shapely.box(20.0, 9.1, 31.6, 27.7), 7.0, origin=(20.0, 20.0))
+    labels = detect.label_footprints([left, right], grid)
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 40, (20000, 2)), np.zeros(20000)])
+    row, col = grid.rowcol(xyz[:, 0], xyz[:, 1])
+    by_cell = labels[row, col].astype(np.int64)
+    got = classes.outline_labels(xyz, by_cell, labels, grid, (np.array([1, 2]), [left, right]))
+    truth = np.where(shapely.intersects_xy(left, xyz[:, 0], xyz[:, 1]), 1,
+                     np.where(shapely.intersects_xy(right, xyz[:, 0], xyz[:, 1]), 2, 0))
+    assert np.array_equal(got, truth)
+    a, b = shapely.box(7.0, 9.0, 20.0, 27.0), shapely.box(20.0, 9.0, 31.0, 27.0)  # a wall along x = 20
+    on_wall = np.column_stack([np.full(9, 20.0), np.linspace(10.0, 26.0, 9), np.zeros(9)])
+    cells = detect.label_footprints([a, b], grid)
+    row, col = grid.rowcol(on_wall[:, 0], on_wall[:, 1])
+    assert np.all(classes.outline_labels(on_wall, cells[row, col].astype(np.int64), cells, grid,
+                                         (np.array([1, 2]), [a, b])) == 1)
+    assert np.count_nonzero(by_cell != truth) > 500  # what the cells alone got wrong
+    assert np.array_equal(classes.outline_labels(xyz, by_cell, labels, grid, (np.array([], int), [])), by_cell)
 
 
 def test_covered_shares_count_overlapping_others_once():

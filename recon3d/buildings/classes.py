@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import shapely
+from scipy import ndimage
 
 from recon3d.config import BuildingsConfig
 from recon3d.core.geo import Units
 from recon3d.core.pointcloud import ASPRS, PointCloud
 from recon3d.core.raster import Raster
 
-__all__ = ["footprint_depth", "point_classes"]
+__all__ = ["footprint_depth", "outline_labels", "point_classes"]
 
 
 def point_classes(
@@ -29,6 +31,7 @@ def point_classes(
     tolerance: float = 0.0,
     plane_tolerance: float | None = None,
     depth: np.ndarray | None = None,
+    outlines: tuple[np.ndarray, list] | None = None,
 ) -> np.ndarray:
     """(n,) uint8 ASPRS classes of recon3d's cloud: 2 ground, 5 vegetation, 6 building, 1 other.
 
@@ -70,6 +73,9 @@ def point_classes(
     depth : (rows, cols) float, optional
         :func:`footprint_depth` of ``labels``, when ``labels`` is a window of a larger
         grid (a footprint may reach beyond the window).
+    outlines : (label values (k,) int, k polygons), optional
+        The footprints near ``grid``: the points near an outline take their footprint
+        from the polygons, not from the cells (:func:`outline_labels`).
     """
     xyz = cloud.xyz
     classes = np.full(len(cloud), ASPRS.UNCLASSIFIED, np.uint8)
@@ -78,6 +84,8 @@ def point_classes(
     ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
     lab = np.zeros(len(cloud), np.int64)
     lab[ok] = labels[row[ok], col[ok]]
+    if outlines is not None:
+        lab = outline_labels(xyz, lab, labels, grid, outlines)
     in_building = lab > 0 if with_solid is None else np.asarray(with_solid, bool)[lab]
     above = xyz[:, 2] - dtm.sample(xyz[:, 0], xyz[:, 1], bilinear=False)
     building = in_building & ~is_ground & (np.nan_to_num(above, nan=-np.inf) >= units.height(config.min_height / 2))
@@ -101,6 +109,56 @@ def point_classes(
     classes[building] = ASPRS.BUILDING
     classes[is_ground] = ASPRS.GROUND
     return classes
+
+
+def outline_labels(xyz: np.ndarray, lab: np.ndarray, labels: np.ndarray, grid: Raster,
+                   outlines: tuple[np.ndarray, list]) -> np.ndarray:
+    """Each point's footprint label, from the polygons wherever a cell's answer may be wrong.
+
+    A cell holds one label, taken at its centre, so the points of a cell an outline
+    crosses all get the centre's answer: the eave half a cell outside the footprint
+    is lost, a street point half a cell inside it is taken. The points of every cell
+    next to a change of label are judged against the polygons themselves (a point on
+    two outlines goes to the lower label), so cloud.laz's building points are those
+    inside the published footprints.
+
+    Parameters
+    ----------
+    xyz : (n, 3) float
+    lab : (n,) int
+        Each point's cell label (0 outside every footprint and off the grid).
+    labels : (rows, cols) int
+        The footprint labels on ``grid``.
+    grid : Raster
+    outlines : ((k,) int, list of k Polygon)
+        Label value and footprint of every building that may hold the points.
+
+    Returns
+    -------
+    (n,) int64
+    """
+    values, polygons = outlines
+    if not len(polygons):
+        return lab
+    edge = ndimage.maximum_filter(labels, size=3) != ndimage.minimum_filter(labels, size=3)
+    row, col = grid.rowcol(xyz[:, 0], xyz[:, 1])
+    rows, cols = labels.shape
+    ok = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+    near = np.flatnonzero(ok)[edge[row[ok], col[ok]]]
+    if not len(near):
+        return lab
+    points = shapely.points(xyz[near, :2])
+    tree = shapely.STRtree(polygons)
+    hit, poly = tree.query(points, predicate="intersects")
+    out = lab.copy()
+    out[near] = 0
+    if not len(hit):
+        return out
+    label = np.asarray(values, np.int64)[poly]
+    first = np.lexsort((label, hit))
+    keep = np.r_[True, hit[first][1:] != hit[first][:-1]]
+    out[near[hit[first][keep]]] = label[first][keep]
+    return out
 
 
 def footprint_depth(labels: np.ndarray, cell: float) -> np.ndarray:

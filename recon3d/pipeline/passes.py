@@ -215,7 +215,7 @@ def vegetation_decide(spec: Spec, tile: Tile, survey: vegetation.Survey, noise: 
     own = pts.subset(core)
     veg, rough = veg[core], rough[core]
     grid = spec.grid(tile)
-    fine = fine_surface(own.cloud, grid, veg, order=own.order)
+    fine = fine_surface(own.cloud, grid, veg, order=own.order, pick="highest" if spec.stereo else "nearest")
     return {
         "vegetation": veg, "roughness": rough,
         "share": vegetation.vegetation_cells(own.cloud, grid, veg, share=True),
@@ -293,6 +293,9 @@ class Finish:
         The same windows of the DTM and the DSM.
     with_solid : (m + 1,) bool
         Per label, whether its building has a solid.
+    outlines : ((k,) int, list of k Polygon) or None
+        Label and footprint of the buildings with a solid near the tile: the points
+        of cells an outline crosses are judged against the polygons.
     roofs, model : CityModel or None
         The buildings touching the tile: with an LoD2.2 solid; with any solid.
     roofs_top, model_top : float
@@ -330,6 +333,7 @@ class Finish:
     buffer: int
     crowns: np.ndarray | None = None
     sunk: np.ndarray | None = None
+    outlines: tuple[np.ndarray, list] | None = None
 
 
 def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
@@ -365,7 +369,7 @@ def finish(spec: Spec, tile: Tile, f: Finish) -> dict:
     point_classes = classes.point_classes(
         cloud, is_ground, f.labels, f.dtm, f.dtm, cfg, u, vegetation=veg, with_solid=f.with_solid,
         roof_surface=roof_surface, roughness=rough, tolerance=f.tolerance, plane_tolerance=f.plane_tolerance,
-        depth=f.depth,
+        depth=f.depth, outlines=f.outlines,
     )
     if f.sunk is not None:  # the mismatches a sunk DTM was interpolated over again: low points, not ground
         from recon3d.stereo.check import SUNK_MARGIN

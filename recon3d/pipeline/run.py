@@ -1588,6 +1588,10 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         return CityModel(keep, r.city.crs, r.city.frame) if keep else None
 
     plane = r.evidence.plane_tolerance
+    labelled = [(i + 1, b) for i, b in enumerate(r.city) if b.solids]
+    near = _touching([b for _, b in labelled], box, margin=r.terrain.dtm.resolution) if labelled else []
+    value = {id(b): v for v, b in labelled}
+    outlines = (np.array([value[id(b)] for b in near], np.int64), [b.footprint for b in near])
     return passes.Finish(
         labels=r.labels[rows, cols], depth=depth[rows, cols],
         dtm=r.terrain.dtm.window(rows, cols), dsm=r.surface.dsm.window(rows, cols), with_solid=with_solid,
@@ -1597,6 +1601,7 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         hidden_ground=bool(r.auto.get("dsm.hidden_ground", {}).get("value")), reference_grid=reference_grid,
         buffer=g.buffers["reference"], crowns=None if r.evidence.crowns is None else r.evidence.crowns[rows, cols],
         sunk=None if r.terrain.sunk is None else r.terrain.sunk[rows, cols],
+        outlines=outlines,
     )
 
 
