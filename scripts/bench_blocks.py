@@ -87,7 +87,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     _bench.add_quick(parser)
     args = parser.parse_args()
-    sets = {"dev 0-9": DEV[:2] if args.quick else DEV}
+    dev = DEV[:2] if args.quick else DEV
+    sets = {f"dev {dev[0]}-{dev[-1]}": dev}
     if not args.quick:
         sets["held-out 20-29"] = HELD_OUT
     configs = {"2 m jumps only": dataclasses.replace(BuildingsConfig(), split_step=0.0), "steps": BuildingsConfig(),

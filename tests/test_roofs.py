@@ -14,6 +14,7 @@ import json
 import numpy as np
 import pytest
 import shapely
+from conftest import shared
 
 from recon3d.buildings import extrude, lod, partition
 from recon3d.buildings.roofs import RoofParams, roof_type, segment_roof
@@ -22,8 +23,6 @@ from recon3d.core.city import Solid
 from recon3d.core.geo import LocalFrame, Units
 from recon3d.quality import roofs as roofq
 from recon3d.quality.meshcheck import check_solid
-
-from conftest import shared
 
 CITYMODELS = ("citymodels/multi_lod.json", "citymodels/DH_01_subs.city.json", "citymodels/rotterdam_subset.json")
 ALL_LODS = LodConfig(lods=("1", "1.3", "2.2"))
