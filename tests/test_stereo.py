@@ -675,3 +675,14 @@ def test_isolated_counts_the_points_of_the_27_cubes(seed):
     near = adjacent.sum(axis=1) - 1
     for least in (1, 4, 9):
         assert np.array_equal(isolated(xyz, voxel, least), near < least)
+
+
+def test_model_rows_name_the_matched_dsm(stereo_run):
+    """From images the DSM the model is compared with is matched, with errors of its own:
+    the rows and the report say so, and do not read as the model's accuracy."""
+    rows = [t for t in stereo_run.report["accuracy"]
+            if t["product"] in ("model DSM", "model scanned at the points") and t["reference"].endswith("roofs")]
+    assert {t["reference"] for t in rows} == {"matched DSM on roofs", "matched DSM inside roofs"}
+    page = (stereo_run.out_dir / "report.html").read_text(encoding="utf-8")
+    assert "The matched DSM is itself reconstructed from the images" in page
+    assert "model vs matched DSM on roofs" in page and "model RMS on roofs" not in page

@@ -199,6 +199,8 @@ def _header(run: dict, report: dict, buildings: list[dict]) -> str:
     for row in report.get("accuracy", []):
         if row.get("reference") == "measured DSM on roofs" and row.get("product") == "model DSM":
             cards.append((fmt_m(row.get("rms"), " m"), "model RMS on roofs"))
+        if row.get("reference") == "matched DSM on roofs" and row.get("product") == "model DSM":
+            cards.append((fmt_m(row.get("rms"), " m"), "model vs matched DSM on roofs"))
         if row.get("product") == "DTM" and row.get("reference") == "provider ground points":
             cards.append((fmt_m(row.get("rms"), " m"), "DTM RMS, provider ground"))
     card_html = "".join(f"<div class=\"card{' alert' if label == 'warnings' and v else ''}\"><b>{v}</b><span>{label}</span></div>"
@@ -234,9 +236,13 @@ def _accuracy_section(rows: list[dict]) -> str:
         cells += [_td(fmt_pct(r.get(k)), r.get(k)) for k in ("within_1m", "within_2m")]
         cells.append(f"<td>{_histogram_svg(r.get('histogram'))}</td>")
         body.append("<tr class=acc>" + "".join(cells) + "</tr>")
+    matched = any(r["reference"].startswith("matched DSM") for r in rows)
+    caveat = (" The matched DSM is itself reconstructed from the images, with errors of its own (outlines wider than the "
+              "buildings put roofs over its ground; occlusions fill it low): its rows say how well the model fits it, "
+              "not how close either is to the ground; the check points are that measure.") if matched else ""
     return (_table(head, body, cls="accuracy", left=2)
             + "<p class=small>Errors in metres (product minus reference). NMAD: the median absolute deviation scaled to a standard deviation "
-            "(robust to outliers). The histogram's red line is zero.</p>")
+            f"(robust to outliers). The histogram's red line is zero.{html.escape(caveat)}</p>")
 
 
 def _histogram_svg(hist: dict | None, width: int = 160, height: int = 34) -> str:
