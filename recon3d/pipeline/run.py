@@ -1370,10 +1370,15 @@ def _touching(buildings: list[Building], box: tuple, *, margin: float = 0.0) -> 
         return []
     import shapely
 
-    x0, y0, x1, y1 = box
-    lo_x, lo_y, hi_x, hi_y = shapely.bounds([b.footprint for b in buildings]).T  # one call: tiles x buildings
-    reach = (lo_x <= x1 + margin) & (hi_x >= x0 - margin) & (lo_y <= y1 + margin) & (hi_y >= y0 - margin)
+    reach = _reaching(shapely.bounds([b.footprint for b in buildings]), box, margin=margin)  # one call: tiles x buildings
     return [b for b, near in zip(buildings, reach, strict=True) if near]
+
+
+def _reaching(bounds: np.ndarray, box: tuple, *, margin: float = 0.0) -> np.ndarray:
+    """(n,) bool: which of the (n, 4) bounds (xmin, ymin, xmax, ymax) reach into ``box`` widened by ``margin``."""
+    x0, y0, x1, y1 = box
+    lo_x, lo_y, hi_x, hi_y = np.asarray(bounds, np.float64).reshape(-1, 4).T
+    return (lo_x <= x1 + margin) & (hi_x >= x0 - margin) & (lo_y <= y1 + margin) & (hi_y >= y0 - margin)
 
 
 #: Height (m) below the highest surface on the same image ray still counted as seen in an orthophoto.
@@ -1568,21 +1573,26 @@ def _against_provider_classes(r: Run, paths: list[Path], reference_grid) -> Accu
 
 def _finish_shared(r: Run) -> tuple:
     """What every tile's last pass shares: the buildings with roofs, which labels have a
-    solid, the depth inside the footprints, and where the rays start."""
+    solid (and their footprints' bounds), the depth inside the footprints, and where the
+    rays start."""
+    import shapely
+
     from recon3d.buildings.classes import footprint_depth
     from recon3d.quality.rasterize import ray_top
 
     with_roofs = [b for b in r.city if "2.2" in b.solids]
     with_solid = np.array([False] + [bool(b.solids) for b in r.city])
+    solid_labels = np.flatnonzero(with_solid)
+    solid_bounds = shapely.bounds([r.city.buildings[v - 1].footprint for v in solid_labels])
     depth = footprint_depth(r.labels, r.grid.transform.a)
     roofs = CityModel(with_roofs, r.city.crs, r.city.frame)
-    return with_roofs, with_solid, depth, ray_top(roofs, "2.2"), r.quality.model_top
+    return with_roofs, with_solid, (solid_labels, solid_bounds), depth, ray_top(roofs, "2.2"), r.quality.model_top
 
 
 def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Finish:
     """The rasters and buildings the last pass reads around ``tile``."""
     u, g = r.units, r.grid
-    with_roofs, with_solid, depth, roofs_top, model_top = shared
+    with_roofs, with_solid, (solid_labels, solid_bounds), depth, roofs_top, model_top = shared
     rows, cols = tile.window(1, g.shape)
     box = g.spec.bounds(rows, cols)
 
@@ -1591,20 +1601,20 @@ def _finish_args(r: Run, tile: Tile, shared: tuple, reference_grid) -> passes.Fi
         return CityModel(keep, r.city.crs, r.city.frame) if keep else None
 
     plane = r.evidence.plane_tolerance
-    labelled = [(i + 1, b) for i, b in enumerate(r.city) if b.solids]
-    near = _touching([b for _, b in labelled], box, margin=r.terrain.dtm.resolution) if labelled else []
-    value = {id(b): v for v, b in labelled}
-    outlines = (np.array([value[id(b)] for b in near], np.int64), [b.footprint for b in near])
+    # the buildings with a solid whose footprints reach the window, and their labels:
+    # every footprint that holds a point of the tile is among them
+    near = solid_labels[_reaching(solid_bounds, box)]
+    model = [r.city.buildings[v - 1] for v in near]
     return passes.Finish(
         labels=r.labels[rows, cols], depth=depth[rows, cols],
         dtm=r.terrain.dtm.window(rows, cols), dsm=r.surface.dsm.window(rows, cols), with_solid=with_solid,
         roofs=touching(with_roofs) if with_roofs else None,
-        model=touching(r.city), roofs_top=roofs_top, model_top=model_top,
+        model=CityModel(model, r.city.crs, r.city.frame) if model else None, roofs_top=roofs_top, model_top=model_top,
         tolerance=max(u.height(0.25), 2.0 * plane), plane_tolerance=plane,
         hidden_ground=bool(r.auto.get("dsm.hidden_ground", {}).get("value")), reference_grid=reference_grid,
         buffer=g.buffers["reference"], crowns=None if r.evidence.crowns is None else r.evidence.crowns[rows, cols],
         sunk=None if r.terrain.sunk is None else r.terrain.sunk[rows, cols],
-        outlines=outlines,
+        outlines=(near, [b.footprint for b in model]),
     )
 
 

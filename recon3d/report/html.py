@@ -181,6 +181,14 @@ def _kv(rows: list[tuple[str, str]]) -> str:
 # --------------------------------------------------------------------------- header, warnings
 
 
+#: The accuracy rows (product, reference) the report's header shows as cards, and their labels.
+CARDS = {
+    ("model DSM", "measured DSM on roofs"): "model RMS on roofs",
+    ("model DSM", "matched DSM on roofs"): "model vs matched DSM on roofs",
+    ("DTM", "provider ground points"): "DTM RMS, provider ground",
+}
+
+
 def _header(run: dict, report: dict, buildings: list[dict]) -> str:
     inputs = run.get("inputs", {})
     chosen = run.get("chosen", {})
@@ -197,12 +205,9 @@ def _header(run: dict, report: dict, buildings: list[dict]) -> str:
              (fmt_m(cell, " m") if cell else NA, "DSM cell"),
              (len(run.get("warnings", [])), "warnings")]
     for row in report.get("accuracy", []):
-        if row.get("reference") == "measured DSM on roofs" and row.get("product") == "model DSM":
-            cards.append((fmt_m(row.get("rms"), " m"), "model RMS on roofs"))
-        if row.get("reference") == "matched DSM on roofs" and row.get("product") == "model DSM":
-            cards.append((fmt_m(row.get("rms"), " m"), "model vs matched DSM on roofs"))
-        if row.get("product") == "DTM" and row.get("reference") == "provider ground points":
-            cards.append((fmt_m(row.get("rms"), " m"), "DTM RMS, provider ground"))
+        label = CARDS.get((row.get("product"), row.get("reference")))
+        if label:
+            cards.append((fmt_m(row.get("rms"), " m"), label))
     card_html = "".join(f"<div class=\"card{' alert' if label == 'warnings' and v else ''}\"><b>{v}</b><span>{label}</span></div>"
                         for v, label in cards)
     return (f"<h1>recon3d report</h1><div class=meta><b>{source}</b><br>{meta}</div>"
